@@ -1,0 +1,52 @@
+"""``ffcomp profile show|import``: printer profiles."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from .common import ProfileOpt, app, console, load_profile_opt
+
+profile_app = typer.Typer(help="Printer profiles: print the default, import firmware geometry.",
+                          no_args_is_help=True)
+app.add_typer(profile_app, name="profile")
+
+
+@profile_app.command("dump")
+def dump(profile: ProfileOpt = None,
+         output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Write here.")] = None) -> None:
+    """Print (or write) a profile as TOML; without --profile the embedded default."""
+    from ..profile import profile_to_toml, save_profile
+
+    prof = load_profile_opt(profile)
+    if output:
+        save_profile(prof, output)
+        console.print(f"wrote {output}")
+    else:
+        typer.echo(profile_to_toml(prof), nl=False)
+
+
+@profile_app.command("import")
+def import_cmd(
+    klipper: Annotated[Optional[Path], typer.Option("--klipper", help="Klipper printer.cfg (delta).")] = None,
+    m665: Annotated[Optional[str], typer.Option("--m665", help="A Marlin/RRF M665 line, quoted.")] = None,
+    firmware: Annotated[str, typer.Option(help="With --m665: marlin or reprap.")] = "marlin",
+    print_radius: Annotated[Optional[float], typer.Option(help="With --m665: print radius, mm.")] = None,
+    output: Annotated[Path, typer.Option("--output", "-o", help="Profile TOML to write.")] = Path("printer.toml"),
+    profile: ProfileOpt = None,
+) -> None:
+    """Import geometry and limits from firmware configuration; dynamics come from --profile."""
+    from ..profile import save_profile
+    from ..profile_import import from_klipper_cfg, from_m665
+
+    if (klipper is None) == (m665 is None):
+        raise typer.BadParameter("give exactly one of --klipper or --m665")
+    base = load_profile_opt(profile)
+    prof = from_klipper_cfg(klipper, base) if klipper else from_m665(m665, base, print_radius_mm=print_radius,
+                                                                      firmware=firmware)
+    save_profile(prof, output)
+    g = prof.geometry
+    console.print(f"wrote {output}: arms {g.arm_length_mm} mm, radius {g.delta_radius_mm} mm, towers at "
+                  f"{g.tower_angles_deg} deg, print radius {g.print_radius_mm} mm")

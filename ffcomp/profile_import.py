@@ -1,0 +1,183 @@
+"""Import printer geometry and limits from firmware configuration.
+
+* Klipper ``printer.cfg`` (``[printer] kinematics: delta``, ``[stepper_a|b|c]``), including the
+  ``#*#`` SAVE_CONFIG block that overrides the sections above it;
+* a Marlin or RepRapFirmware ``M665`` line (``L`` diagonal rod, per tower as ``L250:251:250`` on
+  RRF, ``R`` delta radius, ``B`` radius, ``H`` height, ``X/Y/Z`` tower angle corrections).
+
+Klipper, Marlin and RRF all place towers A/X at 210, B/Y at 330 and C/Z at 90 degrees, the paper at
+0/120/240.  ffcomp keeps the firmware's own tower angles, so positions in the G-code frame mean the
+same thing to ffcomp as to the firmware.  The dynamics are taken from ``base`` (the default profile
+unless given): identify yours with ``ffcomp identify``.
+"""
+
+from __future__ import annotations
+
+import configparser
+import math
+import re
+from dataclasses import replace
+from pathlib import Path
+
+from .errors import ProfileError
+from .profile import PrinterProfile, default_profile, profile_from_dict
+
+__all__ = ["from_klipper_cfg", "from_m665", "FIRMWARE_TOWER_ANGLES_DEG"]
+
+#: Tower angles (A, B, C) used by Klipper, Marlin and RepRapFirmware, degrees counter-clockwise from +x.
+FIRMWARE_TOWER_ANGLES_DEG = (210.0, 330.0, 90.0)
+
+
+def _merge(profile: PrinterProfile, geometry: dict, limits: dict, name: str, source: str) -> PrinterProfile:
+    d = profile.to_dict()
+    d["name"] = name
+    d["geometry"].update(geometry)
+    d["limits"].update(limits)
+    return profile_from_dict(d, source)
+
+
+def _read_klipper(text: str) -> configparser.ConfigParser:
+    main, saved = [], []
+    for line in text.splitlines():
+        if line.startswith("#*#"):
+            body = line[3:].strip()
+            if not body.startswith("<"):  # skip the "<--- SAVE_CONFIG --->" banner
+                saved.append(body)
+        else:
+            main.append(line)
+    cp = configparser.ConfigParser(inline_comment_prefixes=("#", ";"), strict=False, interpolation=None)
+    cp.read_string("\n".join(main))
+    if saved:
+        sv = configparser.ConfigParser(inline_comment_prefixes=("#", ";"), strict=False, interpolation=None)
+        sv.read_string("\n".join(saved))
+        for sec in sv.sections():
+            if not cp.has_section(sec):
+                cp.add_section(sec)
+            for k, v in sv.items(sec):
+                cp.set(sec, k, v)
+    return cp
+
+
+def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None) -> PrinterProfile:
+    """Profile from a Klipper ``printer.cfg`` (delta kinematics)."""
+    path = str(path)
+    base = base or default_profile()
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as e:
+        raise ProfileError("<file>", path, f"cannot read: {e.strerror or e}", path) from e
+    try:
+        cp = _read_klipper(text)
+    except configparser.Error as e:
+        raise ProfileError("<cfg>", path, f"not a valid Klipper config: {e}", path) from e
+
+    def get(sec, key, default=None, conv=float):
+        if cp.has_option(sec, key):
+            raw = cp.get(sec, key)
+            try:
+                return conv(raw)
+            except ValueError:
+                raise ProfileError(f"[{sec}] {key}", raw, "not a number", path) from None
+        if default is None:
+            raise ProfileError(f"[{sec}] {key}", None, "missing (required for a delta printer)", path)
+        return default
+
+    if not cp.has_section("printer"):
+        raise ProfileError("[printer]", None, "section missing", path)
+    kin = cp.get("printer", "kinematics", fallback="").strip()
+    if kin != "delta":
+        raise ProfileError("[printer] kinematics", kin, "only 'delta' kinematics can be imported", path)
+    radius = get("printer", "delta_radius")
+    arm_a = get("stepper_a", "arm_length")
+    arms, angles, radii = [], [], []
+    for i, tower in enumerate("abc"):
+        sec = f"stepper_{tower}"
+        arms.append(get(sec, "arm_length", arm_a) if cp.has_section(sec) else arm_a)
+        angles.append(get(sec, "angle", FIRMWARE_TOWER_ANGLES_DEG[i]) if cp.has_section(sec)
+                      else FIRMWARE_TOWER_ANGLES_DEG[i])
+        radii.append(radius)
+    max_v = get("printer", "max_velocity")
+    max_a = get("printer", "max_accel")
+    geom = {
+        "arm_length_mm": arms,
+        "delta_radius_mm": radii,
+        "tower_angles_deg": angles,
+        "print_radius_mm": get("printer", "print_radius", radius),
+        "z_min_mm": get("printer", "minimum_z_position", 0.0),
+        "z_max_mm": min(get(f"stepper_{t}", "position_endstop", get("stepper_a", "position_endstop"))
+                        for t in "abc" if cp.has_section(f"stepper_{t}")),
+    }
+    limits = {
+        "max_velocity_mm_s": max_v,
+        "max_accel_mm_s2": max_a,
+        "max_z_velocity_mm_s": get("printer", "max_z_velocity", max_v),
+        "max_z_accel_mm_s2": get("printer", "max_z_accel", max_a),
+        "square_corner_velocity_mm_s": get("printer", "square_corner_velocity", 5.0),
+        "planner": "klipper",
+    }
+    if cp.has_option("printer", "minimum_cruise_ratio"):
+        limits["minimum_cruise_ratio"] = get("printer", "minimum_cruise_ratio")
+    elif cp.has_option("printer", "max_accel_to_decel"):
+        limits["minimum_cruise_ratio"] = max(0.0, 1.0 - get("printer", "max_accel_to_decel") / max_a)
+    if cp.has_option("stepper_a", "rotation_distance"):
+        rd = get("stepper_a", "rotation_distance")
+        micro = int(get("stepper_a", "microsteps", 16.0))
+        full = get("stepper_a", "full_steps_per_rotation", 200.0)
+        limits["steps_per_mm"] = full * micro / rd
+        limits["microsteps"] = micro
+    if cp.has_section("extruder"):
+        limits["instantaneous_corner_velocity_mm_s"] = get("extruder", "instantaneous_corner_velocity", 1.0)
+    return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path)
+
+
+_M665_WORD = re.compile(r"([A-Za-z])\s*([-+0-9.:]+)")
+
+
+def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm: float | None = None,
+              firmware: str = "marlin") -> PrinterProfile:
+    """Profile from a Marlin / RepRapFirmware ``M665`` line.
+
+    ``X``, ``Y``, ``Z`` are tower angle corrections in degrees added to 210/330/90; ``R`` the
+    delta radius, ``L`` the diagonal rod (``L250:251:249`` per tower on RRF), ``B`` the printable
+    (RRF) or calibration (Marlin) radius, used as print radius unless ``print_radius_mm`` is given,
+    ``H`` the homed height (taken as ``z_max_mm``).
+    """
+    base = base or default_profile()
+    text = line.split(";")[0].strip()
+    if not text.upper().startswith("M665"):
+        raise ProfileError("M665", line, "expected a line starting with M665")
+    words = {}
+    for letter, val in _M665_WORD.findall(text[4:]):
+        words[letter.upper()] = val
+    def num(letter, default=None):
+        if letter not in words:
+            if default is None:
+                raise ProfileError(f"M665 {letter}", None, "missing", None)
+            return default
+        try:
+            return float(words[letter])
+        except ValueError:
+            raise ProfileError(f"M665 {letter}", words[letter], "not a number") from None
+    if "L" in words and ":" in words["L"]:
+        try:
+            arms = [float(v) for v in words["L"].split(":")]
+        except ValueError:
+            raise ProfileError("M665 L", words["L"], "not a number list") from None
+        if len(arms) != 3:
+            raise ProfileError("M665 L", words["L"], "expected one or three diagonal rod lengths")
+    else:
+        arms = [num("L")] * 3
+    radius = num("R")
+    corr = [num("X", 0.0), num("Y", 0.0), num("Z", 0.0)]
+    angles = [a + c for a, c in zip(FIRMWARE_TOWER_ANGLES_DEG, corr)]
+    geom = {"arm_length_mm": arms, "delta_radius_mm": radius, "tower_angles_deg": angles}
+    pr = print_radius_mm if print_radius_mm is not None else num("B", 0.0) or None
+    if pr is not None:
+        geom["print_radius_mm"] = pr
+    elif not math.isfinite(base.geometry.print_radius_mm):
+        raise ProfileError("M665 B", None, "print radius unknown: give B or --print-radius")
+    if "H" in words:
+        geom["z_max_mm"] = num("H")
+    prof = _merge(base, geom, {"planner": "marlin"} if firmware == "marlin" else {},
+                  f"{firmware} delta from M665", "M665")
+    return replace(prof, source=None)

@@ -1,0 +1,1 @@
+"""Figures and reports (matplotlib lives here and nowhere else)."""

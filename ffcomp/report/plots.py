@@ -1,0 +1,70 @@
+"""Matplotlib figures: Bode plots, mode maps.  Every function writes a PNG and returns its path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["bode_png", "mode_map_png"]
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def bode_png(path, freq_hz, curves: list[tuple[str, np.ndarray]], *, title: str = "",
+             measured: list[tuple[str, np.ndarray, np.ndarray]] | None = None) -> Path:
+    """Bode plot of complex responses ``curves = [(label, H), ...]`` (dB and degrees).
+
+    ``measured``: optional ``[(label, freq_hz, H), ...]`` drawn as markers.
+    """
+    plt = _plt()
+    fig, (ax1, ax2) = plt.subplots(2, 1, sharex=True, figsize=(8, 6))
+    for label, H in curves:
+        ax1.semilogx(freq_hz, 20 * np.log10(np.abs(H)), label=label)
+        ax2.semilogx(freq_hz, np.rad2deg(np.unwrap(np.angle(H))), label=label)
+    for label, f, H in measured or []:
+        ax1.semilogx(f, 20 * np.log10(np.abs(H)), ".", ms=3, label=label)
+        ax2.semilogx(f, np.rad2deg(np.unwrap(np.angle(H))), ".", ms=3, label=label)
+    ax1.set_ylabel("magnitude (dB)")
+    ax2.set_ylabel("phase (deg)")
+    ax2.set_xlabel("frequency (Hz)")
+    ax1.grid(True, which="both", alpha=0.3)
+    ax2.grid(True, which="both", alpha=0.3)
+    ax1.legend(fontsize=8)
+    if title:
+        ax1.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def mode_map_png(path, xy_mm: np.ndarray, freq_hz: np.ndarray, *, title: str = "",
+                 labels=("mode 1", "mode 2", "mode 3"), print_radius_mm: float | None = None) -> Path:
+    """Scatter maps of each mode's natural frequency over the bed (one panel per mode)."""
+    plt = _plt()
+    n = freq_hz.shape[1]
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 4))
+    for j, ax in enumerate(np.atleast_1d(axes)):
+        sc = ax.scatter(xy_mm[:, 0], xy_mm[:, 1], c=freq_hz[:, j], s=18, cmap="viridis", marker="s")
+        fig.colorbar(sc, ax=ax, label="Hz")
+        ax.set_aspect("equal")
+        ax.set_title(labels[j] if j < len(labels) else f"mode {j + 1}")
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        if print_radius_mm:
+            th = np.linspace(0, 2 * np.pi, 200)
+            ax.plot(print_radius_mm * np.cos(th), print_radius_mm * np.sin(th), "k-", lw=0.5)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return Path(path)
