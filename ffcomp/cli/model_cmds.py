@@ -73,9 +73,10 @@ def frf(
     prof = load_profile_opt(profile)
     pos = parse_triple(at)
     try:
-        r = mf.model_frf(prof, pos, input_, output, np.geomspace(fmin, fmax, n))
+        mf.frame_for(input_, output)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+    r = mf.model_frf(prof, pos, input_, output, np.geomspace(fmin, fmax, n))
     if csv:
         from ..measure.frf_file import FrfMeasurement, save_frf
 
