@@ -1,0 +1,249 @@
+"""The feedforward inverse: reference carriage trajectories -> compensated carriage commands.
+
+Two filtered-B-spline stages, split where the model splits exactly (see :mod:`.kernels`):
+
+1. **mechanics** (coupled 3x3, position dependent): find drive positions ``u`` (quintic B-splines)
+   such that ``G_m(X) u`` tracks the reference carriage positions.  The filtered basis comes from
+   the model frozen at each basis function's pose (``lpv``, the efficient LPV scheme), from the
+   exact time-varying model along the path (``lpv-exact``), or from the model frozen at the bed
+   centre (``lti-centre``);
+2. **drive** (per tower, LTI, lightly damped, right-half-plane zero): find commands ``q_d``
+   (quintic B-splines) such that ``F(s) q_d`` tracks ``u``.  LTI, so the windows share one
+   factorisation.
+
+Both stages solve overlapping windows in sequence (limited preview), so the cost grows linearly
+with the print and memory stays bounded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..model.lpv import LpvModel, PoseMatrices, drive_filter_ss
+from .bspline import UniformBasis
+from .fbs import FbsConfig, fbs_solve
+from .kernels import (
+    drive_kernel,
+    drive_tail_samples,
+    ltv_mech_response,
+    mech_arrays,
+    mech_kernels,
+    mech_tail_samples,
+)
+from .ltv import simulate_piecewise
+
+__all__ = ["METHODS", "InverseConfig", "InverseResult", "invert", "mech_tail_for"]
+
+METHODS = ("lpv", "lpv-exact", "lti-centre")
+
+
+@dataclass(frozen=True)
+class InverseConfig:
+    """Settings of the inverse (documented defaults).
+
+    method : {"lpv", "lpv-exact", "lti-centre"}
+    degree : B-spline degree (5: quintic)
+    knot_samples : samples per knot interval (5 at 1 kHz = 5 ms)
+    window_s, advance_s : window length and committed advance of the mechanics stage, s
+    drive_window_s, drive_advance_s : the same for the drive stage, s
+    reg : relative Tikhonov weight towards the reference
+    task_weighted : weigh the mechanics residual by J so the error is measured at the nozzle
+    pre_s, post_s : rest padding before (room to pre-actuate) and after (settling), s
+    """
+
+    method: str = "lpv"
+    degree: int = 5
+    knot_samples: int = 5
+    window_s: float = 0.40
+    advance_s: float = 0.20
+    drive_window_s: float = 0.60
+    drive_advance_s: float = 0.30
+    reg: float = 1e-7
+    task_weighted: bool = True
+    pre_s: float = 0.05
+    post_s: float = 0.30
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+
+
+@dataclass(frozen=True)
+class InverseResult:
+    """Compensated commands on the reference's sample grid (SI).
+
+    q_cmd : (N, 3) carriage commands, m;  u : (N, 3) intended drive positions, m;
+    q_pred_mech : (N, 3) the mechanics stage's prediction of the carriages for ``u``, m.
+    """
+
+    q_cmd: np.ndarray
+    u: np.ndarray
+    q_pred_mech: np.ndarray
+
+
+def _round_to(n: int, m: int) -> int:
+    return max(m, int(round(n / m)) * m)
+
+
+def mech_tail_for(model: LpvModel, xyz_m: np.ndarray, dt_s: float, tol: float = 1e-4) -> int:
+    """Kernel tail of the mechanics: slowest decay over a subsample of the path's poses."""
+    idx = np.linspace(0, len(xyz_m) - 1, min(len(xyz_m), 64)).astype(int)
+    return mech_tail_samples(model.matrices(xyz_m[idx], check=False), dt_s, tol)
+
+
+def _derivatives(q: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Velocity and acceleration of a sampled trajectory (central differences)."""
+    qd = np.gradient(q, dt_s, axis=0)
+    qdd = np.gradient(qd, dt_s, axis=0)
+    return qd, qdd
+
+
+def reference_forcing(mats: PoseMatrices, q, qd, qdd) -> np.ndarray:
+    """Force the mechanics feel when the drives simply follow the reference (``u = q_ref``).
+
+    With ``u = q_ref + delta`` and ``q = q_ref + e``:
+    ``M e'' + C e' + K e = B_c delta' + B_k delta + f_ref`` with
+    ``f_ref = B_c q_ref' + B_k q_ref - (M q_ref'' + C q_ref' + K q_ref)``, shape (N, 3), N.
+    """
+    f = mats.B_c * qd + mats.B_k * q
+    f -= np.einsum("nij,nj->ni", mats.M, qdd) + np.einsum("nij,nj->ni", mats.C, qd)
+    f -= np.einsum("nij,nj->ni", mats.K, q)
+    return f
+
+
+def force_response(mats_seg: PoseMatrices, f: np.ndarray, dt_s: float, seg: int) -> np.ndarray:
+    """Carriage deviation ``e`` (N, 3) of the mechanics driven by force ``f`` (N, 3), piecewise-frozen LPV."""
+    A, _ = mech_arrays(mats_seg)
+    Bf = np.zeros((A.shape[0], 6, 3))
+    Bf[:, 3:, :] = np.linalg.inv(mats_seg.M)
+    x, _ = simulate_piecewise(A, Bf, f, dt_s, seg)
+    return x[:, :3]
+
+
+def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: float,
+           cfg: InverseConfig = InverseConfig(), qd_ref=None, qdd_ref=None) -> InverseResult:
+    """Compensate one trajectory held in memory.
+
+    The command is the reference plus a quintic B-spline correction, found in two FBS stages
+    (mechanics, then drive), both in deviation form so the position-dependent model only ever
+    acts on small signals.
+
+    Parameters
+    ----------
+    q_ref_m, xyz_ref_m : ndarray, shape (N, 3)
+        Reference carriage and nozzle positions on a uniform grid of step ``dt_s``; the printer is
+        assumed at rest at the first sample before the trajectory and after the last one.
+    qd_ref, qdd_ref : ndarray, shape (N, 3), optional
+        Exact carriage velocities and accelerations (central differences otherwise).
+    """
+    q_ref_m = np.asarray(q_ref_m, float)
+    xyz_ref_m = np.asarray(xyz_ref_m, float)
+    N = len(q_ref_m)
+    basis = UniformBasis(cfg.degree, cfg.knot_samples, dt_s)
+    m = basis.m
+    n_pre = _round_to(int(round(cfg.pre_s / dt_s)), m)
+    n_post = int(round(cfg.post_s / dt_s))
+    pad = lambda a: np.concatenate([np.repeat(a[:1], n_pre, 0), a, np.repeat(a[-1:], n_post, 0)])  # noqa: E731
+    q, X = pad(q_ref_m), pad(xyz_ref_m)
+    if qd_ref is None or qdd_ref is None:
+        qd, qdd = _derivatives(q, dt_s)
+    else:
+        z = lambda a: np.concatenate([np.zeros((n_pre, 3)), a, np.zeros((n_post, 3))])  # noqa: E731
+        qd, qdd = z(np.asarray(qd_ref, float)), z(np.asarray(qdd_ref, float))
+    Np = len(q)
+    centre = basis.greville_offset()
+    frozen = cfg.method == "lti-centre"
+    Xm = X.copy()
+    if frozen:
+        Xm[:, :2] = 0.0
+
+    # ---- stage 1: mechanics (coupled, LPV) -> drive positions u = q_ref + delta
+    mats_all = model.matrices(Xm, check=False)
+    f_ref = reference_forcing(mats_all, q, qd, qdd)
+    seg_idx = np.minimum(np.arange(-(-Np // m)) * m + m // 2, Np - 1)
+    e_ref = force_response(_take(mats_all, seg_idx), f_ref, dt_s, m)
+    L_a = basis.support + mech_tail_for(model, Xm, dt_s)
+    pose_of = lambda j0, j1: Xm[np.clip(np.arange(j0, j1) * m + centre, 0, Np - 1)]  # noqa: E731
+
+    if cfg.method in ("lpv", "lti-centre"):
+        def kfn(j0, j1):
+            return mech_kernels(model.matrices(pose_of(j0, j1), check=False), basis, L_a)
+    else:
+        kfn = _ltv_kernel_fn(model, X, basis, L_a)
+    row_w = mats_all.J if cfg.task_weighted else None
+    win = _round_to(int(round(cfg.window_s / dt_s)), m)
+    adv = _round_to(int(round(cfg.advance_s / dt_s)), m)
+    coef_u, pred_e = fbs_solve(-e_ref, kfn, L_a, FbsConfig(basis, win, adv, cfg.reg), row_weights=row_w)
+    delta = basis.evaluate(coef_u, Np)
+    u = q + delta
+
+    # ---- stage 2: drive (per tower, LTI) -> commands q_d = q_ref + eps
+    dwin = _round_to(int(round(cfg.drive_window_s / dt_s)), m)
+    dadv = _round_to(int(round(cfg.drive_advance_s / dt_s)), m)
+    q_cmd = np.empty_like(q)
+    for i in range(3):
+        d0, d1, d2 = mats_all.d0[i], mats_all.d1[i], mats_all.d2[i]
+        lag, dly = mats_all.lag_s[i], mats_all.delay_s[i]
+        L_b = basis.support + drive_tail_samples(d0, d2, lag, dt_s)
+        k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
+        u_ref = drive_response(d0, d1, d2, lag, dly, q[:, i] - q[0, i], dt_s) + q[0, i]
+
+        def dk(j0, j1, k=k):
+            return np.broadcast_to(k[None, None, :, None], (j1 - j0, 1, len(k), 1))
+
+        target = (u[:, i] - u_ref)[:, None]
+        coef_d, _ = fbs_solve(target, dk, L_b, FbsConfig(basis, dwin, dadv, cfg.reg, lti=True))
+        q_cmd[:, i] = q[:, i] + basis.evaluate(coef_d[:, 0], Np)
+    sl = slice(n_pre, n_pre + N)
+    return InverseResult(q_cmd=q_cmd[sl], u=u[sl], q_pred_mech=(q + e_ref + pred_e)[sl])
+
+
+def _take(mats: PoseMatrices, idx) -> PoseMatrices:
+    """Pose matrices at a subset of the poses."""
+    return mats.replace(xyz_m=mats.xyz_m[idx], q_m=mats.q_m[idx], J=mats.J[idx], M=mats.M[idx], C=mats.C[idx],
+                        K=mats.K[idx], B_c=mats.B_c[idx], B_k=mats.B_k[idx])
+
+
+def drive_response(d0, d1, d2, lag_s, delay_s, x: np.ndarray, dt_s: float, pade_order: int = 6) -> np.ndarray:
+    """The drive filter's output for input samples ``x`` (linear in between), from rest at 0."""
+    from scipy.signal import cont2discrete, lfilter
+
+    a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order)
+    ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], np.zeros((1, 1))), dt_s, method="foh")
+    from scipy.signal import ss2tf
+
+    num, den = ss2tf(ad, bd, cd, dd)
+    return lfilter(num[0], den, x)
+
+
+def _ltv_kernel_fn(model: LpvModel, X: np.ndarray, basis: UniformBasis, L: int):
+    """Exact LPV: each basis filtered through the model evaluated at every sample of the path."""
+    m = basis.m
+    Np = len(X)
+    b0, b1 = basis.shape(0), basis.shape(1)
+
+    def kfn(j0, j1):
+        nJ = j1 - j0
+        s0 = j0 * m
+        span = min((j1 - 1) * m + L, Np + L) - s0
+        idx = np.clip(np.arange(s0, s0 + span), 0, Np - 1)
+        mats: PoseMatrices = model.matrices(X[idx], check=False)
+        w = np.zeros((span, 6, nJ * 3))
+        for jj in range(nJ):
+            s = jj * m
+            n = min(basis.support, span - s)
+            for i in range(3):
+                col = jj * 3 + i
+                w[s:s + n, i, col] = b0[:n]
+                w[s:s + n, 3 + i, col] = b1[:n]
+        y = ltv_mech_response(mats, w, basis.dt_s)  # (span, 3, nJ*3)
+        K = np.zeros((nJ, 3, L, 3))
+        for jj in range(nJ):
+            s = jj * m
+            n = min(L, span - s)
+            K[jj, :, :n, :] = y[s:s + n, :, jj * 3:(jj + 1) * 3].transpose(2, 0, 1)
+        return K
+
+    return kfn

@@ -1,0 +1,72 @@
+"""Fast simulation of a linear system whose matrices change along the path (piecewise frozen).
+
+The path is cut into segments of ``seg`` samples; within a segment the system is LTI at the
+segment's pose and is solved exactly in modal coordinates for inputs linear between samples
+(first-order hold), vectorised over all segments at once.  Only the hand-over of the state from
+one segment to the next is a loop (one 6x6 or 12x12 product per segment), so a second of print
+at 1 kHz with 5-sample segments costs ~200 small products instead of 1,000 Python steps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels import modal_foh
+
+__all__ = ["simulate_piecewise"]
+
+
+def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float, seg: int,
+                       x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate ``x' = A_s x + B_s w`` with ``A_s, B_s`` frozen on each segment of ``seg`` samples.
+
+    Parameters
+    ----------
+    A : ndarray, shape (S, n, n)
+        One matrix per segment (``S = ceil(N / seg)``).
+    B : ndarray, shape (S, n, m)
+    w : ndarray, shape (N, m)
+        Inputs at the samples, linear in between.
+    x0 : ndarray, shape (n,), optional
+        Initial state (zero by default).
+
+    Returns
+    -------
+    x : ndarray, shape (N, n)
+        States at the samples.
+    x_end : ndarray, shape (n,)
+        State one sample after the last (to continue the simulation).
+    """
+    N, m_in = w.shape
+    S = -(-N // seg)
+    if A.shape[0] != S:
+        raise ValueError(f"need {S} segment matrices for {N} samples in segments of {seg}, got {A.shape[0]}")
+    n = A.shape[1]
+    foh = modal_foh(A, B, dt_s)
+    Vinv = np.linalg.inv(foh.V)
+    # inputs per segment incl. the first sample of the next one (held at the end of the data)
+    wp = np.concatenate([w, np.repeat(w[-1:], S * seg + 1 - N, 0)])
+    idx = np.arange(S)[:, None] * seg + np.arange(seg + 1)[None, :]
+    ws = wp[idx]  # (S, seg+1, m)
+    # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1
+    v = np.einsum("snm,skm->skn", foh.g1 - foh.g2, ws[:, :-1]) + np.einsum("snm,skm->skn", foh.g2, ws[:, 1:])
+    e = np.exp(foh.lam * dt_s)  # (S, n)
+    # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j, k = 0..seg
+    powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n)
+    zs = np.zeros((S, seg + 1, n), complex)
+    for k in range(1, seg + 1):
+        zs[:, k] = zs[:, k - 1] * e + v[:, k - 1]
+    # hand the physical state from segment to segment
+    xs = np.empty((S, n))
+    x = np.zeros(n) if x0 is None else np.asarray(x0, float)
+    Ve = foh.V
+    for s in range(S):
+        xs[s] = x
+        z0 = Vinv[s] @ x
+        x = (Ve[s] @ (powers[s, seg] * z0 + zs[s, seg])).real
+    z0 = np.einsum("snm,sm->sn", Vinv, xs)  # modal start states
+    Z = powers * z0[:, None, :] + zs  # (S, seg+1, n)
+    X = np.einsum("snm,skm->skn", Ve, Z[:, :seg]).real.reshape(S * seg, n)
+    k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
+    x_end = (Ve[-1] @ Z[-1, k_end]).real
+    return X[:N], x_end
