@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
+from .linalg3 import inv3
 
 __all__ = [
     "DeltaGeometry",
@@ -193,7 +194,7 @@ def jacobian(geom: DeltaGeometry, xyz) -> np.ndarray:
     q = inverse(geom, xyz_a)
     S = _s_matrix(geom, xyz_a, q)
     h = q - xyz_a[:, 2:3] - geom.effector_offset_z_m  # = s_i^T p with p = (0, 0, -1)
-    J = -np.linalg.solve(S, h[:, :, None] * np.eye(3)[None])
+    J = -inv3(S) * h[:, None, :]
     return J[0] if single else J
 
 
@@ -202,7 +203,7 @@ def joint_velocity(geom: DeltaGeometry, xyz, xyz_dot) -> np.ndarray:
     xyz_a, single = _as_poses(xyz)
     v = np.atleast_2d(np.asarray(xyz_dot, float))
     J = jacobian(geom, xyz_a)
-    qd = np.linalg.solve(J, v[:, :, None])[:, :, 0]
+    qd = np.einsum("nij,nj->ni", inv3(J), v)
     return qd[0] if single else qd
 
 
@@ -225,14 +226,15 @@ def jacobian_dot(geom: DeltaGeometry, xyz, xyz_dot) -> np.ndarray:
     q = inverse(geom, xyz_a)
     S = _s_matrix(geom, xyz_a, q)
     h = q - xyz_a[:, 2:3] - geom.effector_offset_z_m
-    J = -np.linalg.solve(S, h[:, :, None] * np.eye(3)[None])
-    qd = np.linalg.solve(J, v[:, :, None])[:, :, 0]
+    Sinv = inv3(S)
+    J = -Sinv * h[:, None, :]
+    qd = np.einsum("nij,nj->ni", inv3(J), v)
     # s_i_dot = X_dot + p q_i_dot, p = (0, 0, -1)
     Sd = np.repeat(v[:, None, :], 3, axis=1)
     Sd[:, :, 2] -= qd
     K = -Sd[:, :, 2]  # s_i_dot^T p
     rhs = Sd @ J + K[:, :, None] * np.eye(3)[None]
-    Jd = -np.linalg.solve(S, rhs)
+    Jd = -Sinv @ rhs
     return Jd[0] if single else Jd
 
 

@@ -70,3 +70,41 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
     x_end = (Ve[-1] @ Z[-1, k_end]).real
     return X[:N], x_end
+
+
+def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
+                 z0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """LTI ``x' = A x + B w`` with first-order-hold inputs, by per-mode recursive filters.
+
+    Each mode is a complex first-order recursion run by :func:`scipy.signal.lfilter`, so a long
+    signal costs a few vectorised passes.  ``z0`` / the second return value are the modal states
+    (to continue the simulation over the next chunk; the chunk must then begin with the sample
+    that ended the previous one).
+
+    Returns
+    -------
+    x : ndarray, shape (N, n)
+    z_end : ndarray, shape (n,), complex
+        Modal state at the last sample.
+    """
+    from scipy.signal import lfilter
+
+    foh = modal_foh(A[None], B[None], dt_s)
+    lam, V = foh.lam[0], foh.V[0]
+    g1, g2 = foh.g1[0], foh.g2[0]
+    e = np.exp(lam * dt_s)
+    wn = np.concatenate([w[1:], w[-1:]])
+    v = w @ (g1 - g2).T + wn @ g2.T  # (N, n): forcing of step k -> k+1
+    n = len(lam)
+    Z = np.empty((len(w), n), complex)
+    z_init = np.zeros(n, complex) if z0 is None else np.asarray(z0, complex)
+    # z_k = e^k z0 + sum_{j<k} e^{k-1-j} v_j
+    for i in range(n):
+        forced = lfilter([1.0], [1.0, -e[i]], v[:, i])  # y_k = sum_{j<=k} e^{k-j} v_j
+        Z[1:, i] = forced[:-1]
+        if z_init[i] != 0:
+            Z[1:, i] += z_init[i] * e[i] ** np.arange(1, len(w))
+        Z[0, i] = z_init[i]
+    x = (Z @ V.T).real
+    z_end = Z[-1]
+    return x, z_end

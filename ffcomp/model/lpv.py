@@ -31,6 +31,7 @@ import control
 import numpy as np
 
 from ..kinematics import DeltaGeometry, check_reachable, inverse, jacobian
+from ..linalg3 import inv3
 from .submodels import CarriageParams
 
 __all__ = [
@@ -200,23 +201,6 @@ def joint_response(mats: PoseMatrices, freq_hz, *, delay: str = "exact") -> np.n
     return np.moveaxis(G, 1, -1)
 
 
-def inv3(A: np.ndarray) -> np.ndarray:
-    """Inverse of a stack of 3x3 matrices by the adjugate (several times faster than LAPACK here)."""
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
-    d, e, f = A[..., 1, 0], A[..., 1, 1], A[..., 1, 2]
-    g, h, i = A[..., 2, 0], A[..., 2, 1], A[..., 2, 2]
-    co = np.empty_like(A)
-    co[..., 0, 0] = e * i - f * h
-    co[..., 0, 1] = c * h - b * i
-    co[..., 0, 2] = b * f - c * e
-    co[..., 1, 0] = f * g - d * i
-    co[..., 1, 1] = a * i - c * g
-    co[..., 1, 2] = c * d - a * f
-    co[..., 2, 0] = d * h - e * g
-    co[..., 2, 1] = b * g - a * h
-    co[..., 2, 2] = a * e - b * d
-    det = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
-    return co / det[..., None, None]
 
 
 def frequency_response(model_or_mats, xyz_m=None, freq_hz=None, *, frame: str = "task",

@@ -89,9 +89,27 @@ def modes(model_or_mats, xyz_m=None) -> ModalSummary:
     ph = np.take_along_axis(v3, k[:, None, :], axis=1)
     vr = (v3 * np.conj(ph) / np.abs(ph)).real
     vr /= np.linalg.norm(vr, axis=1, keepdims=True)
+    _align_degenerate(wn, vr, mats.J)
     vt = mats.J @ vr
     vt /= np.linalg.norm(vt, axis=1, keepdims=True)
     return ModalSummary(mats.xyz_m, wn / (2 * np.pi), zeta, vr, vt)
+
+
+def _align_degenerate(wn: np.ndarray, vr: np.ndarray, J: np.ndarray, rtol: float = 1e-6) -> None:
+    """Within a (numerically) repeated mode pair the eigenvectors are arbitrary; replace them, in
+    place, by the pair whose nozzle motions lie along coordinate axes (x and y at the bed centre)."""
+    for p in range(wn.shape[0]):
+        for j in range(wn.shape[1] - 1):
+            if abs(wn[p, j + 1] - wn[p, j]) > rtol * wn[p, j]:
+                continue
+            S, _ = np.linalg.qr(vr[p][:, j:j + 2])  # joint-space subspace (3, 2)
+            T = J[p] @ S  # its nozzle motions
+            coef, *_ = np.linalg.lstsq(T, np.eye(3), rcond=None)  # best combination for each axis
+            fit = np.linalg.norm(T @ coef - np.eye(3), axis=0)
+            axes = np.sort(np.argsort(fit)[:2])
+            for k, a in enumerate(axes):
+                v = S @ coef[:, a]
+                vr[p][:, j + k] = v / np.linalg.norm(v)
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,11 @@ matrices, every stage honours an effect once it is in the profile's ``[[effects]
 
 Writing an effect: subclass :class:`Effect`, declare ``name`` and ``params`` (name ->
 :class:`Param`), implement ``apply``, and add the class to :data:`EFFECTS` below.
+
+Optional hooks used by ``ffcomp diagnose`` / ``ffcomp fit`` (:mod:`ffcomp.fit_effects`):
+``fit`` names the parameters fitted by default (empty: all), :attr:`Param.search` the plausible
+range the fit starts from and is bounded by, ``summary`` a one-line description and
+:meth:`Effect.explain` the fitted values read back in physical words.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from typing import ClassVar
 
 from ...errors import ProfileError
 
-__all__ = ["Param", "Effect", "EFFECTS", "build_effects", "validate_effects", "register"]
+__all__ = ["Param", "Effect", "EFFECTS", "build_effects", "validate_effects", "register", "load_library"]
 
 
 @dataclass(frozen=True)
@@ -28,6 +33,13 @@ class Param:
     lo: float = float("-inf")
     hi: float = float("inf")
     doc: str = ""
+    #: plausible (lo, hi) for fitting: start grid and bounds of ``ffcomp diagnose``/``fit`` (None: lo, hi)
+    search: tuple[float, float] | None = None
+
+    @property
+    def fit_range(self) -> tuple[float, float]:
+        """Bounds used when fitting: :attr:`search` if given, else ``(lo, hi)``."""
+        return self.search if self.search is not None else (self.lo, self.hi)
 
 
 class Effect:
@@ -35,6 +47,19 @@ class Effect:
 
     name: ClassVar[str] = ""
     params: ClassVar[dict[str, Param]] = {}
+    #: parameters fitted by default (diagnose, fit); empty means all of ``params``
+    fit: ClassVar[tuple[str, ...]] = ()
+    #: one-line description (the physics) for listings
+    summary: ClassVar[str] = ""
+
+    @classmethod
+    def fit_params(cls) -> tuple[str, ...]:
+        return tuple(cls.fit) if cls.fit else tuple(cls.params)
+
+    @classmethod
+    def primary(cls) -> str:
+        """The parameter ``NAME=VALUE`` sets (first fitted parameter)."""
+        return cls.fit_params()[0]
 
     def __init__(self, **values):
         unknown = set(values) - set(self.params)
@@ -59,6 +84,10 @@ class Effect:
     def to_dict(self) -> dict:
         return {"name": self.name, **self.values}
 
+    def explain(self, model) -> str:
+        """The parameter values in words (override to say what they mean physically)."""
+        return ", ".join(f"{k} = {v:.4g} {self.params[k].unit}".rstrip() for k, v in self.values.items())
+
     def __repr__(self) -> str:
         vals = ", ".join(f"{k}={v:g}" for k, v in self.values.items())
         return f"{self.name}({vals})"
@@ -79,6 +108,12 @@ def _load_library() -> None:
 
     for mod in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{mod.name}")
+
+
+def load_library() -> dict[str, type[Effect]]:
+    """Import every effect module and return :data:`EFFECTS`."""
+    _load_library()
+    return EFFECTS
 
 
 def build_effects(specs) -> list[Effect]:
