@@ -1,0 +1,326 @@
+"""Streaming inverse: the default two-stage FBS compensation in bounded memory.
+
+:class:`FbsStream` is the windowed solver of :mod:`.fbs` turned inside out: targets are fed in
+chunks, windows are solved as soon as their data (plus preview) is there, committed coefficients
+are turned into final spline values, and everything older than one kernel length is dropped.
+:class:`StreamingInverse` chains the mechanics stage and the three drive stages on top of it.
+
+Only the ``lpv`` and ``lti-centre`` methods stream (their normal equations are identical in every
+window); the other variants of :mod:`.inverse` hold the trajectory in memory and exist to measure
+the accuracy/time trade-off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.signal import cont2discrete, lfilter, lfilter_zi, ss2tf
+
+from ..errors import SolverError
+from ..kinematics import jacobian, jacobian_dot
+from ..linalg3 import inv3
+from ..model.lpv import LpvModel, drive_filter_ss
+from .bspline import UniformBasis
+from .fbs import _dense_basis
+from .inverse import InverseConfig, _round_to, inverse_dynamics_force
+from .kernels import drive_kernel, drive_tail_samples, mech_arrays, mech_kernels, mech_tail_samples
+from .ltv import simulate_lti
+
+__all__ = ["FbsStream", "StreamingInverse", "carriage_derivatives"]
+
+
+class FbsStream:
+    """Windowed LTI filtered-B-spline least squares, fed in chunks.
+
+    Parameters
+    ----------
+    kernel : ndarray, shape (n_in, L, n_out)
+        The filtered response of one basis function (identical for every basis).
+    basis : UniformBasis
+    window, advance : int
+        Samples; multiples of ``basis.m``.
+    reg : float
+        Relative Tikhonov weight towards the target at each basis' centre.
+    row_stride : int
+        Residual evaluated on every ``row_stride``-th sample.
+    """
+
+    def __init__(self, kernel: np.ndarray, basis: UniformBasis, window: int, advance: int, reg: float,
+                 row_stride: int = 1):
+        self.K = np.asarray(kernel, float)
+        self.n_in, self.L, self.n_out = self.K.shape
+        self.basis, self.W, self.A, self.reg, self.rs = basis, window, advance, reg, row_stride
+        m = basis.m
+        if window % m or advance % m or not (0 < advance < window):
+            raise ValueError("window and advance must be multiples of the knot spacing, 0 < advance < window")
+        self.m = m
+        self.nJ = window // m
+        starts = np.arange(self.nJ) * m
+        Kb = np.broadcast_to(self.K[None], (self.nJ,) + self.K.shape)
+        self.Phi = _dense_basis(Kb, starts, window, row_stride)
+        G = self.Phi.T @ self.Phi
+        self.lam = reg * max(float(np.mean(np.diag(G))), 1e-30)
+        G[np.diag_indices_from(G)] += self.lam
+        self.factor = cho_factor(G, lower=True, check_finite=False)
+        self._tail_cache: dict[int, tuple] = {}
+        # buffers indexed from sample `off`
+        self.off = 0
+        self.tgt = np.zeros((0, self.n_out))
+        self.pred = np.zeros((window + self.L + 1, self.n_out))
+        self.w0 = 0
+        self.coef = np.zeros((0, self.n_in))  # committed coefficients of bases [cj0, cj0 + len)
+        self.cj0 = 0
+        self.done = 0  # samples whose spline value has been returned
+        self.shape = basis.shape(0)
+
+    def _solve_window(self, rows: int, final: bool) -> None:
+        m, W = self.m, self.W
+        a = self.w0 - self.off
+        need = a + rows + self.L + W
+        if need > len(self.pred):
+            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred), self.n_out))])
+        resid = self.tgt[a:a + rows] - self.pred[a:a + rows]
+        if rows == W:
+            Phi, factor, lam = self.Phi, self.factor, self.lam
+        else:  # the last, shorter window
+            if rows not in self._tail_cache:
+                nJ = -(-rows // m)
+                Kb = np.broadcast_to(self.K[None], (nJ,) + self.K.shape)
+                Ph = _dense_basis(Kb, np.arange(nJ) * m, rows, self.rs)
+                G = Ph.T @ Ph
+                lam_t = self.reg * max(float(np.mean(np.diag(G))), 1e-30)
+                G[np.diag_indices_from(G)] += lam_t
+                self._tail_cache[rows] = (Ph, cho_factor(G, lower=True, check_finite=False), lam_t)
+            Phi, factor, lam = self._tail_cache[rows]
+        nJ = Phi.shape[1] // self.n_in
+        idx = np.clip(np.arange(nJ) * m + self.basis.greville_offset(), 0, rows - 1) + a
+        prior = self.tgt[idx][:, : self.n_in] if self.n_in == self.n_out else np.zeros((nJ, self.n_in))
+        g = Phi.T @ resid[:: self.rs].reshape(-1) + lam * prior.reshape(-1)
+        c = cho_solve(factor, g, check_finite=False).reshape(nJ, self.n_in)
+        if not np.all(np.isfinite(c)):
+            raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
+        n_commit = nJ if final else self.A // m
+        c = c[:n_commit]
+        # predicted output of the committed bases (overlap-add of identical kernels)
+        up = np.zeros((n_commit * m, self.n_in))
+        up[::m] = c
+        for i in range(self.n_in):
+            for o in range(self.n_out):
+                y = np.convolve(up[:, i], self.K[i, :, o])
+                self.pred[a:a + len(y), o] += y
+        self.coef = np.concatenate([self.coef, c])
+        self.w0 += n_commit * m
+
+    def _values(self, upto: int) -> np.ndarray:
+        """Spline values for samples [done, upto) (all their bases committed)."""
+        m, sup = self.m, self.basis.support
+        k = np.arange(self.done, upto)
+        out = np.zeros((len(k), self.n_in))
+        if len(k) == 0:
+            return out
+        j_lo = max(self.cj0, (self.done - sup) // m)
+        j_hi = min(self.cj0 + len(self.coef), -(-upto // m))
+        for j in range(j_lo, j_hi):
+            s = j * m
+            sel = (k >= s) & (k < s + sup)
+            if sel.any():
+                out[sel] += self.shape[k[sel] - s][:, None] * self.coef[j - self.cj0][None, :]
+        self.done = upto
+        # forget coefficients no sample will need again, and old buffer rows
+        keep_j = max(self.cj0, (upto - sup) // m)
+        self.coef = self.coef[keep_j - self.cj0:]
+        self.cj0 = keep_j
+        return out
+
+    def feed(self, target: np.ndarray) -> np.ndarray:
+        """Add target rows; returns spline values of samples that became final (in order)."""
+        self.tgt = np.concatenate([self.tgt, np.asarray(target, float).reshape(-1, self.n_out)])
+        end = self.off + len(self.tgt)
+        while self.w0 + self.W <= end:
+            self._solve_window(self.W, final=False)
+        vals = self._values(self.w0)
+        self._trim()
+        return vals
+
+    def finish(self) -> np.ndarray:
+        """Solve the remaining windows and return the last spline values."""
+        end = self.off + len(self.tgt)
+        while self.w0 < end:
+            rows = min(self.W, end - self.w0)
+            self._solve_window(rows, final=rows < self.W or self.w0 + self.W >= end)
+        vals = self._values(end)
+        return vals
+
+    def _trim(self) -> None:
+        cut = self.w0 - self.off
+        if cut > 4 * self.W:
+            self.tgt = self.tgt[cut:]
+            self.pred = self.pred[cut:]
+            self.off += cut
+
+
+def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
+    """Carriage velocities and accelerations from nozzle kinematics: ``q' = J^-1 v``,
+    ``q'' = J^-1 (a - J_dot q')``."""
+    Jinv = inv3(jacobian(geom, xyz_m))
+    qd = np.einsum("nij,nj->ni", Jinv, v_m_s)
+    Jd = jacobian_dot(geom, xyz_m, v_m_s)
+    qdd = np.einsum("nij,nj->ni", Jinv, a_m_s2 - np.einsum("nij,nj->ni", Jd, qd))
+    return qd, qdd
+
+
+class _DriveFilter:
+    """A tower's drive filter applied to a stream of samples (first-order hold, state carried)."""
+
+    def __init__(self, d0, d1, d2, lag_s, delay_s, dt_s):
+        a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s)
+        ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], np.zeros((1, 1))), dt_s, method="foh")
+        num, den = ss2tf(ad, bd, cd, dd)
+        self.b, self.a = num[0], den
+        self.zi = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self.zi is None:
+            self.zi = lfilter_zi(self.b, self.a) * 0.0  # at rest at 0 (inputs are relative)
+        if len(x) == 0:  # scipy's lfilter returns an uninitialised state for empty input
+            return np.zeros(0)
+        y, self.zi = lfilter(self.b, self.a, x, zi=self.zi)
+        return y
+
+
+class StreamingInverse:
+    """Reference samples in, compensated carriage commands out, in bounded memory.
+
+    Feed chunks of the reference (carriage positions, their derivatives and the nozzle poses) with
+    :meth:`push`; each call returns the commands of the samples that became final (a few hundred
+    milliseconds behind the input); :meth:`finish` returns the rest.  The printer is taken to be at
+    rest at the first sample before the stream starts (``cfg.pre_s`` of rest are added so the
+    command can pre-actuate) and after it ends.
+    """
+
+    def __init__(self, model: LpvModel, dt_s: float, cfg: InverseConfig = InverseConfig()):
+        if cfg.method not in ("lpv", "lti-centre"):
+            raise ValueError(f"method {cfg.method!r} does not stream; use 'lpv' or 'lti-centre'")
+        self.model, self.dt, self.cfg = model, dt_s, cfg
+        self.basis = UniformBasis(cfg.degree, cfg.knot_samples, dt_s)
+        self.started = False
+        self.n_in = 0  # reference samples received (without the rest padding)
+        self.n_out = 0  # stream rows produced (with the padding)
+        self._returned = 0  # commands returned to the caller
+
+    def _start(self, q0, x0):
+        m, cfg, dt = self.basis.m, self.cfg, self.dt
+        self.q0 = q0.copy()
+        self.x_centre = np.array([0.0, 0.0, x0[2]])
+        mats0 = self.model.matrices(self.x_centre[None], check=False)
+        A0, _ = mech_arrays(mats0)
+        self.A0 = A0[0]
+        self.Bf = np.zeros((6, 3))
+        self.Bf[3:] = np.linalg.inv(mats0.M[0])
+        self.zA = None
+        self.g_last = None
+        L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
+        k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
+        win = _round_to(int(round(cfg.window_s / dt)), m)
+        adv = _round_to(int(round(cfg.advance_s / dt)), m)
+        self.mech = FbsStream(k0, self.basis, win, adv, cfg.reg, cfg.row_stride)
+        dwin = _round_to(int(round(cfg.drive_window_s / dt)), m)
+        dadv = _round_to(int(round(cfg.drive_advance_s / dt)), m)
+        self.drive, self.dfilt = [], []
+        for i in range(3):
+            d0, d1, d2 = mats0.d0[i], mats0.d1[i], mats0.d2[i]
+            lag, dly = mats0.lag_s[i], mats0.delay_s[i]
+            Lb = self.basis.support + drive_tail_samples(d0, d2, lag, dt)
+            kb = drive_kernel(d0, d1, d2, lag, dly, self.basis, Lb)
+            self.drive.append(FbsStream(kb[None, :, None], self.basis, dwin, dadv, cfg.reg))
+            self.dfilt.append(_DriveFilter(d0, d1, d2, lag, dly, dt))
+        # reference rows waiting for their delta (stage 1) and their eps (stage 2)
+        self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
+        self.qbuf_c = np.zeros((0, 3))  # q_ref rows not yet through stage 2
+        self.started = True
+        n_pre = _round_to(int(round(cfg.pre_s / dt)), m)
+        self.n_pre = n_pre
+        z = np.zeros((n_pre, 3))
+        self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+
+    def _push(self, q, qd, qdd, X) -> np.ndarray:
+        cfg = self.cfg
+        Xm = X.copy()
+        if cfg.method == "lti-centre":
+            Xm[:, :2] = 0.0
+        mats = self.model.matrices(Xm, check=False)
+        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X)
+        # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
+        if self.zA is None:
+            tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt)
+        else:
+            t2, self.zA = simulate_lti(self.A0, self.Bf, np.concatenate([self.g_last, g]), self.dt, z0=self.zA)
+            tgt = t2[1:]
+        self.g_last = g[-1:]
+        return self._stage2(q, self.mech.feed(tgt[:, :3]))
+
+    def _stage2(self, q, delta) -> np.ndarray:
+        self.qbuf_u = np.concatenate([self.qbuf_u, q])
+        n = len(delta)
+        qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
+        u = qn + delta
+        eps = []
+        for i in range(3):
+            u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
+            eps.append(self.drive[i].feed((u[:, i] - u_ref)[:, None])[:, 0])
+        return self._emit(qn, eps)
+
+    def _emit(self, qn, eps) -> np.ndarray:
+        self.qbuf_c = np.concatenate([self.qbuf_c, qn])
+        n = min(len(e) for e in eps)
+        self._eps_left = getattr(self, "_eps_left", [np.zeros(0)] * 3)
+        allv = [np.concatenate([self._eps_left[i], eps[i]]) for i in range(3)]
+        n = min(len(v) for v in allv)
+        out = self.qbuf_c[:n] + np.stack([v[:n] for v in allv], 1)
+        self.qbuf_c = self.qbuf_c[n:]
+        self._eps_left = [v[n:] for v in allv]
+        # drop the rest padding at the start
+        skip = min(len(out), max(0, self.n_pre - self.n_out))
+        self.n_out += len(out)
+        return out[skip:]
+
+    def push(self, q_m, xyz_m, qd=None, qdd=None) -> np.ndarray:
+        """Add reference samples (N, 3); returns finished commands (M, 3), M <= N overall."""
+        q_m = np.asarray(q_m, float)
+        xyz_m = np.asarray(xyz_m, float)
+        if len(q_m) == 0:
+            return np.zeros((0, 3))
+        if not self.started:
+            self._start(q_m[0], xyz_m[0])
+        if qd is None or qdd is None:
+            raise ValueError("push needs the carriage velocities and accelerations (see carriage_derivatives)")
+        self.n_in += len(q_m)
+        self._last = (q_m[-1].copy(), xyz_m[-1].copy())
+        out = self._push(q_m, qd, qdd, xyz_m)
+        self._returned += len(out)
+        return out
+
+    def finish(self) -> np.ndarray:
+        """Flush: rest padding after the end, the remaining windows; returns the last commands."""
+        if not self.started:
+            return np.zeros((0, 3))
+        q_last, x_last = self._last
+        n_post = int(round(self.cfg.post_s / self.dt))
+        z = np.zeros((n_post, 3))
+        parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
+        delta = self.mech.finish()
+        parts.append(self._stage2_final(delta))
+        out = np.concatenate(parts)
+        return out[: max(0, self.n_in - self._returned)]
+
+    def _stage2_final(self, delta) -> np.ndarray:
+        n = len(delta)
+        qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
+        u = qn + delta
+        eps = []
+        for i in range(3):
+            u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
+            e1 = self.drive[i].feed((u[:, i] - u_ref)[:, None])[:, 0]
+            e2 = self.drive[i].finish()[:, 0]
+            eps.append(np.concatenate([e1, e2]))
+        return self._emit(qn, eps)
