@@ -66,6 +66,8 @@ class FbsStream:
         # buffers indexed from sample `off`
         self.off = 0
         self.tgt = np.zeros((0, self.n_out))
+        self.pin = np.zeros(0, bool)  # rows where the spline itself must be zero
+        self.pin_weight = 1e3
         self.pred = np.zeros((window + self.L + 1, self.n_out))
         self.w0 = 0
         self.coef = np.zeros((0, self.n_in))  # committed coefficients of bases [cj0, cj0 + len)
@@ -93,6 +95,21 @@ class FbsStream:
                 self._tail_cache[rows] = (Ph, cho_factor(G, lower=True, check_finite=False), lam_t)
             Phi, factor, lam = self._tail_cache[rows]
         nJ = Phi.shape[1] // self.n_in
+        pins = np.nonzero(self.pin[a:a + rows])[0] if len(self.pin) else np.zeros(0, int)
+        if pins.size:
+            # the command must equal the reference here (the planned nozzle stands still): penalise
+            # the spline's value at these samples; such windows are factorised on their own
+            B = np.zeros((pins.size, nJ))
+            for jj in range(nJ):
+                off = pins - jj * m
+                ok = (off >= 0) & (off < self.basis.support)
+                B[ok, jj] = self.shape[off[ok]]
+            Bk = np.kron(B, np.eye(self.n_in))
+            G = Phi.T @ Phi
+            G[np.diag_indices_from(G)] += lam
+            wgt = self.pin_weight**2 * max(float(np.mean(np.diag(G))), 1e-30)
+            G += wgt * Bk.T @ Bk
+            factor = cho_factor(G, lower=True, check_finite=False)
         idx = np.clip(np.arange(nJ) * m + self.basis.greville_offset(), 0, rows - 1) + a
         prior = self.tgt[idx][:, : self.n_in] if self.n_in == self.n_out else np.zeros((nJ, self.n_in))
         g = Phi.T @ resid[:: self.rs].reshape(-1) + lam * prior.reshape(-1)
@@ -114,27 +131,32 @@ class FbsStream:
     def _values(self, upto: int) -> np.ndarray:
         """Spline values for samples [done, upto) (all their bases committed)."""
         m, sup = self.m, self.basis.support
-        k = np.arange(self.done, upto)
-        out = np.zeros((len(k), self.n_in))
-        if len(k) == 0:
+        n = upto - self.done
+        out = np.zeros((max(n, 0), self.n_in))
+        if n <= 0:
             return out
         j_lo = max(self.cj0, (self.done - sup) // m)
         j_hi = min(self.cj0 + len(self.coef), -(-upto // m))
-        for j in range(j_lo, j_hi):
-            s = j * m
-            sel = (k >= s) & (k < s + sup)
-            if sel.any():
-                out[sel] += self.shape[k[sel] - s][:, None] * self.coef[j - self.cj0][None, :]
+        if j_hi > j_lo:
+            s_lo = j_lo * m
+            up = np.zeros((upto - s_lo + m, self.n_in))
+            up[: (j_hi - j_lo) * m: m] = self.coef[j_lo - self.cj0:j_hi - self.cj0]
+            for i in range(self.n_in):
+                y = np.convolve(up[:, i], self.shape)[self.done - s_lo:upto - s_lo]
+                out[: len(y), i] = y
         self.done = upto
-        # forget coefficients no sample will need again, and old buffer rows
+        # forget coefficients no sample will need again
         keep_j = max(self.cj0, (upto - sup) // m)
         self.coef = self.coef[keep_j - self.cj0:]
         self.cj0 = keep_j
         return out
 
-    def feed(self, target: np.ndarray) -> np.ndarray:
-        """Add target rows; returns spline values of samples that became final (in order)."""
-        self.tgt = np.concatenate([self.tgt, np.asarray(target, float).reshape(-1, self.n_out)])
+    def feed(self, target: np.ndarray, pin: np.ndarray | None = None) -> np.ndarray:
+        """Add target rows (and optionally a mask of rows where the spline must vanish); returns
+        spline values of samples that became final (in order)."""
+        target = np.asarray(target, float).reshape(-1, self.n_out)
+        self.tgt = np.concatenate([self.tgt, target])
+        self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -156,6 +178,7 @@ class FbsStream:
         if cut > 4 * self.W:
             self.tgt = self.tgt[cut:]
             self.pred = self.pred[cut:]
+            self.pin = self.pin[cut:]
             self.off += cut
 
 
@@ -198,15 +221,18 @@ class StreamingInverse:
     command can pre-actuate) and after it ends.
     """
 
-    def __init__(self, model: LpvModel, dt_s: float, cfg: InverseConfig = InverseConfig()):
+    def __init__(self, model: LpvModel, dt_s: float, cfg: InverseConfig = InverseConfig(),
+                 keep_padding: bool = False):
         if cfg.method not in ("lpv", "lti-centre"):
             raise ValueError(f"method {cfg.method!r} does not stream; use 'lpv' or 'lti-centre'")
         self.model, self.dt, self.cfg = model, dt_s, cfg
+        self.keep_padding = keep_padding
         self.basis = UniformBasis(cfg.degree, cfg.knot_samples, dt_s)
         self.started = False
         self.n_in = 0  # reference samples received (without the rest padding)
         self.n_out = 0  # stream rows produced (with the padding)
         self._returned = 0  # commands returned to the caller
+        self._pre_out = None
 
     def _start(self, q0, x0):
         m, cfg, dt = self.basis.m, self.cfg, self.dt
@@ -236,15 +262,19 @@ class StreamingInverse:
             self.dfilt.append(_DriveFilter(d0, d1, d2, lag, dly, dt))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
+        self.pinbuf = np.zeros(0, bool)  # their hold flags
         self.qbuf_c = np.zeros((0, 3))  # q_ref rows not yet through stage 2
         self.started = True
         n_pre = _round_to(int(round(cfg.pre_s / dt)), m)
         self.n_pre = n_pre
+        n_post = int(round(cfg.post_s / dt))
+        self.n_post = n_post
         z = np.zeros((n_pre, 3))
-        self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+        self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
 
-    def _push(self, q, qd, qdd, X) -> np.ndarray:
+    def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
         cfg = self.cfg
+        self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -263,11 +293,12 @@ class StreamingInverse:
         self.qbuf_u = np.concatenate([self.qbuf_u, q])
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
+        pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
         u = qn + delta
         eps = []
         for i in range(3):
             u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
-            eps.append(self.drive[i].feed((u[:, i] - u_ref)[:, None])[:, 0])
+            eps.append(self.drive[i].feed((u[:, i] - u_ref)[:, None], pn)[:, 0])
         return self._emit(qn, eps)
 
     def _emit(self, qn, eps) -> np.ndarray:
@@ -279,13 +310,18 @@ class StreamingInverse:
         out = self.qbuf_c[:n] + np.stack([v[:n] for v in allv], 1)
         self.qbuf_c = self.qbuf_c[n:]
         self._eps_left = [v[n:] for v in allv]
-        # drop the rest padding at the start
-        skip = min(len(out), max(0, self.n_pre - self.n_out))
+        # drop the rest padding at the start (unless the caller emits it: then the whole timeline
+        # runs n_pre samples late, which leaves room to pre-actuate the first move)
+        skip = 0 if self.keep_padding else min(len(out), max(0, self.n_pre - self.n_out))
         self.n_out += len(out)
         return out[skip:]
 
-    def push(self, q_m, xyz_m, qd=None, qdd=None) -> np.ndarray:
-        """Add reference samples (N, 3); returns finished commands (M, 3), M <= N overall."""
+    def push(self, q_m, xyz_m, qd=None, qdd=None, hold=None) -> np.ndarray:
+        """Add reference samples (N, 3); returns finished commands (M, 3), M <= N overall.
+
+        ``hold`` (N,) marks samples where the command must equal the reference (the planned nozzle
+        stands still during an extruder-only move or a dwell, and a G-code file cannot move it then).
+        """
         q_m = np.asarray(q_m, float)
         xyz_m = np.asarray(xyz_m, float)
         if len(q_m) == 0:
@@ -296,7 +332,10 @@ class StreamingInverse:
             raise ValueError("push needs the carriage velocities and accelerations (see carriage_derivatives)")
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())
-        out = self._push(q_m, qd, qdd, xyz_m)
+        out = self._push(q_m, qd, qdd, xyz_m, None if hold is None else np.asarray(hold, bool))
+        if self._pre_out is not None:
+            out = np.concatenate([self._pre_out, out])
+            self._pre_out = None
         self._returned += len(out)
         return out
 
@@ -311,16 +350,19 @@ class StreamingInverse:
         delta = self.mech.finish()
         parts.append(self._stage2_final(delta))
         out = np.concatenate(parts)
+        if self.keep_padding:
+            return out[: max(0, self.n_pre + self.n_in + self.n_post - self._returned)]
         return out[: max(0, self.n_in - self._returned)]
 
     def _stage2_final(self, delta) -> np.ndarray:
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
+        pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
         u = qn + delta
         eps = []
         for i in range(3):
             u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
-            e1 = self.drive[i].feed((u[:, i] - u_ref)[:, None])[:, 0]
+            e1 = self.drive[i].feed((u[:, i] - u_ref)[:, None], pn)[:, 0]
             e2 = self.drive[i].finish()[:, 0]
             eps.append(np.concatenate([e1, e2]))
         return self._emit(qn, eps)

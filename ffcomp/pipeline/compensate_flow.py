@@ -1,0 +1,514 @@
+"""Compensation flow: G-code -> plan -> samples -> streaming inverse -> compensated G-code.
+
+One pass streams the source through the firmware-faithful planner and the sampler into the
+streaming inverse; finished commands go through forward kinematics to the writer, while the LPV
+model predicts the residual vibration of the reference and of the command for the summary.  The
+body is written to a temporary file; the header (which states the firmware settings the file
+needs, from what the body turned out to need) is prepended, the result is re-planned by the same
+planner as a self-check, and only then does it replace the output atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .. import __version__
+from ..compensate.inverse import InverseConfig
+from ..compensate.kernels import modal_foh  # noqa: F401  (re-exported for tests)
+from ..compensate.ltv import simulate_piecewise
+from ..compensate.stream import StreamingInverse, carriage_derivatives
+from ..errors import GcodeError, SelfCheckError
+from ..gcode.parser import parse_gcode
+from ..gcode.planner import GcodePlan
+from ..gcode.sampler import sample_blocks
+from ..gcode.writer import GcodeWriter
+from ..kinematics import forward, inverse, jacobian
+from ..model.lpv import LpvModel, state_space_arrays
+
+__all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M"]
+
+#: a carriage jump larger than this between two samples is a homing (the stream restarts), m
+JUMP_M = 2e-3
+
+
+@dataclass(frozen=True)
+class CompensateOptions:
+    """Options of :func:`compensate_file` (documented defaults).
+
+    method : inverse variant (``lpv`` or ``lti-centre`` stream)
+    tol_um : point placement tolerance of the G-code writer, micrometres
+    z_mode : ``keep`` (emit the compensated z of every point) or ``hold`` (keep z at the planned z
+        wherever the plan holds it: no z motion on layer moves, for firmware with a low max_z_accel)
+    self_check : re-plan the output and compare with the intended commands
+    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres
+    predict : predict the residual vibration before/after with the LPV model for the summary
+    lenient : malformed G-code lines become counted warnings
+    accel_factor : the header's ACCEL is this times the compensated path's peak acceleration
+    pin_holds : keep the command on the reference while the plan holds the nozzle still (extruder-only
+        moves, dwells): a G-code file cannot move the nozzle during those lines
+    """
+
+    method: str = "lpv"
+    tol_um: float = 5.0
+    z_mode: str = "keep"
+    self_check: bool = True
+    self_check_tol_um: float = 50.0
+    predict: bool = True
+    lenient: bool = False
+    accel_factor: float = 4.0
+    pin_holds: bool = False
+    block_len: int = 4096
+    inverse: InverseConfig = field(default_factory=InverseConfig)
+
+
+@dataclass
+class CompensationSummary:
+    """The closing summary of a run (all lengths in micrometres, times in seconds)."""
+
+    source: str
+    output: str
+    method: str
+    lines_in: int = 0
+    lines_out: int = 0
+    segments: int = 0
+    print_time_s: float = 0.0
+    output_print_time_s: float | None = None
+    wall_time_s: float = 0.0
+    speed_ratio: float = 0.0
+    rms_before_um: float | None = None
+    max_before_um: float | None = None
+    rms_after_um: float | None = None
+    max_after_um: float | None = None
+    self_check_max_um: float | None = None
+    self_check_rms_um: float | None = None
+    self_check_catch_up_max_um: float | None = None
+    max_correction_um: float = 0.0
+    header_accel_mm_s2: float = 0.0
+    restarts: int = 0
+    warnings: int = 0
+    notes: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class _Predictor:
+    """Running LPV prediction of the nozzle error of a command stream (piecewise-frozen model)."""
+
+    def __init__(self, model: LpvModel, dt_s: float, seg: int = 20):
+        self.model, self.dt, self.seg = model, dt_s, seg
+        self.x = None
+        self.w_last = None
+        self.sq = 0.0
+        self.n = 0
+        self.mx = 0.0
+
+    def reset(self):
+        self.x = None
+        self.w_last = None
+
+    def push(self, q_cmd, q_ref, xyz_ref):
+        if len(q_cmd) == 0:
+            return
+        if self.x is None:
+            self.q0 = q_cmd[0].copy()
+            w = q_cmd - self.q0
+            prefix = 0
+        else:
+            w = np.concatenate([self.w_last, q_cmd - self.q0])
+            prefix = 1
+        X = np.concatenate([xyz_ref[:1], xyz_ref]) if prefix else xyz_ref
+        S = -(-len(w) // self.seg)
+        idx = np.minimum(np.arange(S) * self.seg + self.seg // 2, len(X) - 1)
+        A, B, C, _ = state_space_arrays(self.model.matrices(X[idx], check=False))
+        if self.x is None:
+            self.x = np.zeros(A.shape[1])
+        xs, _ = simulate_piecewise(A, B, w, self.dt, self.seg, x0=self.x)
+        self.x = xs[-1]
+        self.w_last = w[-1:]
+        q = xs[prefix:] @ C[0].T + self.q0
+        J = jacobian(self.model.geometry, xyz_ref)
+        e = np.einsum("nij,nj->ni", J, q - q_ref)
+        en = np.sqrt(np.sum(e * e, 1))
+        if os.environ.get("FFCOMP_DEBUG_PRED"):
+            self.trace = getattr(self, "trace", []) + [en]
+        self.sq += float(np.sum(en * en))
+        self.n += len(en)
+        self.mx = max(self.mx, float(en.max()))
+
+    @property
+    def rms_um(self) -> float:
+        return math.sqrt(self.sq / max(self.n, 1)) * 1e6
+
+
+def _count_lines(path: str) -> int:
+    n = 0
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(1 << 20)
+            if not b:
+                return n
+            n += b.count(b"\n")
+
+
+def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOptions = CompensateOptions(),
+                    progress: Callable[[int, int], None] | None = None) -> CompensationSummary:
+    """Compensate the G-code file ``src`` and write ``out_path`` atomically (``None``: stdout).
+
+    On any error the output is not touched (and the source never is: with ``out_path == src`` the
+    source is replaced only after the whole output, header and self-check are done).
+    """
+    t_wall = time.perf_counter()
+    if opts.z_mode not in ("keep", "hold"):
+        raise ValueError(f"z_mode must be 'keep' or 'hold', got {opts.z_mode!r}")
+    src = str(src)
+    if not os.path.isfile(src):
+        raise GcodeError(src, 0, "no such file")
+    total_lines = _count_lines(src)
+    model = LpvModel.from_profile(profile)
+    geom = model.geometry
+    dt = 1.0 / profile.limits.sample_rate_hz
+    icfg = InverseConfig(**{**asdict(opts.inverse), "method": opts.method})
+    summ = CompensationSummary(source=src, output=str(out_path) if out_path else "-", method=opts.method,
+                               lines_in=total_lines)
+    out_dir = os.path.dirname(os.path.abspath(out_path)) if out_path else tempfile.gettempdir()
+    body_fd, body_path = tempfile.mkstemp(prefix=".ffcomp-body-", suffix=".gcode", dir=out_dir)
+    qfile_fd, qfile = tempfile.mkstemp(prefix=".ffcomp-q-", suffix=".f32", dir=out_dir)
+    os.close(qfile_fd)
+    final_tmp = None
+    try:
+        moves: dict = {}
+        plan = GcodePlan(src, profile, lenient=opts.lenient)
+
+        def tee():
+            for mv in plan:
+                moves[mv.index] = mv
+                yield mv
+
+        with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf:
+            lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
+                                     home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm)))
+            writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves)
+            pred_before = _Predictor(model, dt) if opts.predict else None
+            pred_after = _Predictor(model, dt) if opts.predict else None
+            fifo = _Fifo()
+            inv = None
+            last_q = None
+            k_written = 0
+            a_peak = 0.0
+            v_prev = None
+
+            def emit(qc):
+                nonlocal k_written, a_peak, v_prev
+                if len(qc) == 0:
+                    return
+                meta = fifo.pop(len(qc))
+                xyz = forward(geom, qc)
+                if np.any(~np.isfinite(xyz)):
+                    bad = int(np.argmax(~np.isfinite(xyz).all(1)))
+                    raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
+                                         f"nozzle position (carriages {qc[bad] * 1e3} mm)")
+                if opts.z_mode == "hold":
+                    hold = _z_held(meta["move_index"], moves)
+                    xyz[hold, 2] = meta["xyz"][hold, 2]
+                    qc = qc.copy()
+                    qc[hold] = inverse(geom, xyz[hold])
+                summ.max_correction_um = max(summ.max_correction_um,
+                                             float(np.max(np.abs(qc - meta["q"]))) * 1e6)
+                # peak acceleration of the intended nozzle path (for the header)
+                v = np.diff(xyz, axis=0) / dt
+                if v_prev is not None and len(v):
+                    v = np.vstack([v_prev, v])
+                if len(v) > 2:
+                    acc = np.linalg.norm(np.diff(v, axis=0), axis=1) / dt
+                    a_peak = max(a_peak, float(np.percentile(acc, 99.9)))
+                if len(v):
+                    v_prev = v[-1:]
+                qf.write(qc.astype(np.float32).tobytes())
+                if pred_after is not None:
+                    pred_after.push(qc, meta["q"], meta["xyz"])
+                    pred_before.push(meta["q"], meta["q"], meta["xyz"])
+                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"])
+                k_written += len(qc)
+                if progress is not None:
+                    progress(int(meta["lineno"][-1]), total_lines)
+
+            def push_post(meta):
+                n_post = int(round(icfg.post_s / dt))
+                qq, xx, ee, mi, ln = meta
+                fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
+                          e=np.repeat(ee, n_post), move_index=np.repeat(mi, n_post), lineno=np.repeat(ln, n_post))
+
+            last_meta = None
+            for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz,
+                                     block_len=opts.block_len, overlap=0, path=src):
+                q = blk.q_m
+                # homing (or any jump) restarts the compensation stream
+                jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
+                if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
+                    jumps = np.concatenate([[0], jumps])
+                pieces = np.split(np.arange(len(q)), jumps)
+                for pc in pieces:
+                    if len(pc) == 0:
+                        continue
+                    if inv is not None and pc[0] in jumps:
+                        push_post(last_meta)
+                        emit(inv.finish())
+                        inv = None
+                        summ.restarts += 1
+                        if pred_after is not None:
+                            pred_after.reset()
+                            pred_before.reset()
+                    sl = slice(pc[0], pc[-1] + 1)
+                    if inv is None:
+                        inv = StreamingInverse(model, dt, icfg, keep_padding=True)
+                        # the stream starts with a short rest (room to pre-actuate): its rows carry
+                        # the first sample's meaning, so the whole file runs that much later
+                        k = pc[0]
+                        n_pre = inv_pre_samples(icfg, dt)
+                        fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
+                                  e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.repeat(blk.move_index[k:k + 1], n_pre),
+                                  lineno=np.repeat(blk.lineno[k:k + 1], n_pre))
+                    last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]],
+                                 blk.lineno[pc[-1]])
+                    fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
+                              lineno=blk.lineno[sl])
+                    qd, qdd = carriage_derivatives(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
+                    hold = _holds(blk.move_index[sl], moves) if opts.pin_holds else None
+                    emit(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
+                last_q = q[-1].copy()
+                summ.print_time_s = float(blk.t_s[-1])
+            if inv is not None:
+                push_post(last_meta)
+                emit(inv.finish())
+            writer.finish()
+        summ.warnings = plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
+        summ.segments = writer.stats.segments
+        if pred_after is not None and pred_after.n:
+            summ.rms_before_um, summ.max_before_um = pred_before.rms_um, pred_before.mx * 1e6
+            summ.rms_after_um, summ.max_after_um = pred_after.rms_um, pred_after.mx * 1e6
+        # header with the firmware settings this file needs, then the body
+        accel = max(profile.limits.max_accel_mm_s2, opts.accel_factor * a_peak * 1e3)
+        accel = float(math.ceil(accel / 100.0) * 100.0)
+        summ.header_accel_mm_s2 = accel
+        head, foot = _header(profile, opts, src, accel, writer.stats)
+        final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
+        n_out = 0
+        with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:
+            for ln in head:
+                fo.write(ln + "\n")
+            for ln in fb:
+                fo.write(ln)
+                n_out += 1
+            for ln in foot:
+                fo.write(ln + "\n")
+            fo.flush()
+            os.fsync(fo.fileno())
+        summ.lines_out = n_out + len(head) + len(foot)
+        if opts.self_check:
+            _self_check(final_tmp, qfile, profile, geom, summ, opts, writer.segments, len(head))
+        # success: move into place
+        if out_path is None:
+            import shutil
+            import sys
+
+            with open(final_tmp, encoding="utf-8") as f:
+                shutil.copyfileobj(f, sys.stdout)
+            sys.stdout.flush()
+        else:
+            try:
+                os.chmod(final_tmp, os.stat(out_path).st_mode & 0o7777)
+            except FileNotFoundError:
+                os.chmod(final_tmp, 0o644)
+            os.replace(final_tmp, out_path)
+            final_tmp = None
+    finally:
+        for p in (body_path, qfile, final_tmp):
+            if p and os.path.exists(p):
+                os.unlink(p)
+    if os.environ.get("FFCOMP_DEBUG_PRED") and opts.predict:
+        np.save("/tmp/pred_after.npy", np.concatenate(pred_after.trace))
+        np.save("/tmp/pred_before.npy", np.concatenate(pred_before.trace))
+    summ.wall_time_s = time.perf_counter() - t_wall
+    summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
+    return summ
+
+
+def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
+    """Rest samples the streaming inverse puts before a stream."""
+    from ..compensate.inverse import _round_to
+
+    return _round_to(int(round(icfg.pre_s / dt)), icfg.knot_samples)
+
+
+def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move is an extruder-only move or a dwell (the nozzle stands still)."""
+    out = np.zeros(len(move_index), bool)
+    for mi in np.unique(move_index):
+        mv = moves.get(int(mi))
+        if mv is not None and mv.kind != "move":
+            out[move_index == mi] = True
+    return out
+
+
+def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move keeps z constant."""
+    out = np.zeros(len(move_index), bool)
+    for mi in np.unique(move_index):
+        mv = moves.get(int(mi))
+        if mv is not None and abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9:
+            out[move_index == mi] = True
+    return out
+
+
+class _Fifo:
+    """Per-sample metadata waiting for its compensated command."""
+
+    def __init__(self):
+        self.parts: dict[str, list[np.ndarray]] = {}
+
+    def push(self, **cols):
+        for k, v in cols.items():
+            self.parts.setdefault(k, []).append(np.asarray(v))
+
+    def pop(self, n: int) -> dict[str, np.ndarray]:
+        out = {}
+        for k, lst in self.parts.items():
+            arr = np.concatenate(lst) if len(lst) > 1 else lst[0]
+            out[k], rest = arr[:n], arr[n:]
+            self.parts[k] = [rest]
+        return out
+
+
+def _header(profile, opts: CompensateOptions, src: str, accel: float, stats) -> tuple[list[str], list[str]]:
+    lim = profile.limits
+    settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
+                f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
+                f"degree={opts.inverse.degree} sample_rate={lim.sample_rate_hz:g}Hz")
+    head = [
+        f"; ffcomp {__version__}: model-based feedforward vibration compensation (delta)",
+        f"; source: {os.path.basename(src)}",
+        f"; profile: {profile.name}",
+        f"; settings: {settings}",
+        "; The timing of every move below is baked in: run it with the firmware settings that follow",
+        "; (limit and mode commands of the source are kept as '; ffcomp (baked in):' comments).",
+    ]
+    if lim.planner == "klipper":
+        head += [
+            f"; requires [printer] max_z_accel >= {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
+            f"max_z_velocity >= {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
+            f"SET_VELOCITY_LIMIT ACCEL={accel:.0f} MINIMUM_CRUISE_RATIO=0 "
+            f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g}",
+        ]
+        foot = [f"SET_VELOCITY_LIMIT ACCEL={lim.max_accel_mm_s2:g} MINIMUM_CRUISE_RATIO={lim.minimum_cruise_ratio:g} "
+                f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g} ; ffcomp: restore the profile's limits"]
+    else:
+        head += [f"M204 P{accel:.0f} T{accel:.0f}", f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f}"]
+        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} ; ffcomp: restore the profile's limits"]
+    head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
+    return head, foot
+
+
+def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary, opts: CompensateOptions,
+                segments=None, head_len: int = 0) -> None:
+    """Re-plan the output with the firmware-faithful planner and compare carriages with the intent.
+
+    Every re-planned XYZ segment is sampled from its own start at the intended sample spacing and
+    compared with the intended commands of the samples it stands for, so the check sees both the
+    shape (tolerance, firmware acceleration ramps) and the timing inside each segment; the drift of
+    the whole file's duration is reported separately (``output_print_time_s``).
+    """
+    intended = np.memmap(qfile, dtype=np.float32, mode="r").reshape(-1, 3)
+    seg = {} if segments is None else {
+        int(segments[i]) + head_len: (int(segments[i + 1]), int(segments[i + 2]), int(segments[i + 3]))
+        for i in range(0, len(segments), 4)}
+    dt = 1.0 / profile.limits.sample_rate_hz
+    worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
+    worst_cu = 0.0
+    t_end = 0.0
+    batch_pos, batch_k = [], []
+    batch_info: dict = {}
+
+    batch_cu = []
+    n_batch = 0
+
+    def flush():
+        nonlocal worst, worst_k, sq, cnt, worst_cu, n_batch
+        n_batch = 0
+        if not batch_pos:
+            return
+        P = np.concatenate(batch_pos) * 1e-3
+        K = np.concatenate(batch_k)
+        CU = np.concatenate(batch_cu)
+        q = inverse(geom, P)
+        d = np.max(np.abs(q - intended[K].astype(float)), axis=1)
+        if CU.any():
+            worst_cu = max(worst_cu, float(np.max(d[CU])))
+            d = np.where(CU, 0.0, d)
+        if os.environ.get("FFCOMP_DEBUG_SELFCHECK"):
+            for j in np.argsort(-d)[:3]:
+                print("selfcheck", int(K[j]), float(d[j]) * 1e6, batch_info.get(int(K[j])))
+        i = int(np.nanargmax(d))
+        if d[i] > worst:
+            worst, worst_k = float(d[i]), int(K[i])
+        sq += float(np.nansum(d * d))
+        cnt += len(d)
+        batch_pos.clear()
+        batch_k.clear()
+        batch_cu.clear()
+
+    for mv in GcodePlan(path, profile, lenient=True):
+        t_end = mv.t_end_s
+        ks = seg.get(mv.lineno)
+        if ks is None or mv.kind != "move":
+            continue
+        ka, kb, cu = ks
+        k = np.arange(ka + 1, kb + 1)
+        # a catch-up segment (and the one after it, which absorbs its timing) is judged separately
+        batch_cu.append(np.full(len(k), bool(cu)))
+        tau = np.minimum((k - ka) * dt, mv.duration_s)
+        s = _distance(mv, tau)
+        batch_pos.append(np.asarray(mv.start_mm[:3])[None] + s[:, None] * np.asarray(mv.unit[:3])[None])
+        if os.environ.get("FFCOMP_DEBUG_SELFCHECK"):
+            for kk in k:
+                batch_info[int(kk)] = (mv.lineno, round(mv.start_v_mm_s, 2), round(mv.cruise_v_mm_s, 2),
+                                       round(mv.end_v_mm_s, 2), round(mv.accel_mm_s2), round(mv.duration_s, 5),
+                                       (kb - ka) * dt)
+        batch_k.append(k)
+        n_batch += len(k)
+        if n_batch > 50000:
+            flush()
+    flush()
+    summ.output_print_time_s = t_end
+    summ.self_check_max_um = worst * 1e6
+    summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
+    summ.self_check_catch_up_max_um = worst_cu * 1e6
+    if worst_cu * 1e6 > 4 * opts.self_check_tol_um:
+        raise SelfCheckError(
+            f"self-check failed: a catch-up after an extruder-only move or dwell strays {worst_cu * 1e6:.1f} um "
+            f"from the intended carriage commands (limit {4 * opts.self_check_tol_um:g} um). Nothing was written.")
+    if worst * 1e6 > opts.self_check_tol_um:
+        raise SelfCheckError(
+            f"self-check failed: the re-planned output strays {worst * 1e6:.1f} um from the intended carriage "
+            f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
+
+
+def _distance(mv, tau: np.ndarray) -> np.ndarray:
+    """Distance along a planned trapezoid at times ``tau`` after its start (vectorised), mm."""
+    a, v0, vc = mv.accel_mm_s2, mv.start_v_mm_s, mv.cruise_v_mm_s
+    ta, tc = mv.accel_t_s, mv.cruise_t_s
+    d_a = (v0 + vc) * 0.5 * ta
+    s1 = v0 * tau + 0.5 * a * tau * tau
+    t2 = tau - ta
+    s2 = d_a + vc * t2
+    t3 = tau - ta - tc
+    s3 = d_a + vc * tc + vc * t3 - 0.5 * a * t3 * t3
+    return np.where(tau < ta, s1, np.where(tau < ta + tc, s2, s3))
