@@ -17,7 +17,8 @@ Sections
     ``max_velocity_mm_s``, ``max_accel_mm_s2``, ``max_z_velocity_mm_s``, ``max_z_accel_mm_s2``,
     ``square_corner_velocity_mm_s``, ``minimum_cruise_ratio``, ``junction_deviation_mm`` (Marlin),
     ``instantaneous_corner_velocity_mm_s`` (Klipper's extruder junction limit),
-    ``max_extrude_only_velocity_mm_s``, ``max_extrude_only_accel_mm_s2``, ``planner`` (``"klipper"`` or ``"marlin"``), ``steps_per_mm`` (microsteps included),
+    ``max_extrude_only_velocity_mm_s``, ``max_extrude_only_accel_mm_s2``, ``planner`` (``"klipper"`` or
+    ``"marlin"``), ``steps_per_mm`` (microsteps included),
     ``microsteps``, ``sample_rate_hz``.
 ``[dynamics]``
     Carriage sub-model (scalar, or 3 values for per-tower parameters): ``m`` (kg), ``c`` (belt
@@ -31,13 +32,13 @@ Sections
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 
 from .errors import ProfileError
 from .kinematics import DeltaGeometry, arm_heights

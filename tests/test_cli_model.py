@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from cli_util import run, run_json
+
 from ffcomp.measure.frf_file import save_frf
 from ffcomp.measure.synthetic import identification_sweeps
 from ffcomp.profile import load_profile

@@ -6,12 +6,18 @@ parses options, calls one plain function that returns an object, and prints or w
 
 from __future__ import annotations
 
+import os
 import sys
+
+# our matrices are small: BLAS threads only contend (set before numpy loads)
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
 
 from .common import app, run_app
 
 # command modules register themselves on ``app`` when imported
-_COMMAND_MODULES = ("model_cmds", "identify_cmd", "plan_cmd", "profile_cmds")
+_COMMAND_MODULES = ("compensate_cmd", "model_cmds", "identify_cmd", "plan_cmd", "profile_cmds", "validate_cmds",
+                    "sim_cmds", "hook_cmd")
 
 
 def _load_commands() -> None:

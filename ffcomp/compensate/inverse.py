@@ -69,10 +69,10 @@ class InverseConfig:
     method: str = "lpv"
     degree: int = 5
     knot_samples: int = 5
-    window_s: float = 0.40
-    advance_s: float = 0.20
-    drive_window_s: float = 0.60
-    drive_advance_s: float = 0.30
+    window_s: float = 0.80
+    advance_s: float = 0.60
+    drive_window_s: float = 1.00
+    drive_advance_s: float = 0.70
     reg: float = 1e-7
     task_weighted: bool = True
     pre_s: float = 0.05
@@ -230,7 +230,6 @@ def _mech_stage_fast(model, q, qd, qdd, X, Xm, basis, win, adv, cfg):
     """
     from .ltv import simulate_lti
 
-    m = basis.m
     mats = model.matrices(Xm, check=False)
     g = inverse_dynamics_force(model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X)
     x0 = Xm[:1].copy()

@@ -73,7 +73,7 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
 
 
 def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
-                 z0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 z0: np.ndarray | None = None, foh=None) -> tuple[np.ndarray, np.ndarray]:
     """LTI ``x' = A x + B w`` with first-order-hold inputs, by per-mode recursive filters.
 
     Each mode is a complex first-order recursion run by :func:`scipy.signal.lfilter`, so a long
@@ -89,7 +89,8 @@ def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     """
     from scipy.signal import lfilter
 
-    foh = modal_foh(A[None], B[None], dt_s)
+    if foh is None:  # callers that stream one system pass its discretisation back in
+        foh = modal_foh(A[None], B[None], dt_s)
     lam, V = foh.lam[0], foh.V[0]
     g1, g2 = foh.g1[0], foh.g2[0]
     e = np.exp(lam * dt_s)
@@ -103,7 +104,7 @@ def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         forced = lfilter([1.0], [1.0, -e[i]], v[:, i])  # y_k = sum_{j<=k} e^{k-j} v_j
         Z[1:, i] = forced[:-1]
         if z_init[i] != 0:
-            Z[1:, i] += z_init[i] * e[i] ** np.arange(1, len(w))
+            Z[1:, i] += z_init[i] * np.exp(lam[i] * dt_s * np.arange(1, len(w)))
         Z[0, i] = z_init[i]
     x = (Z @ V.T).real
     z_end = Z[-1]

@@ -23,7 +23,7 @@ from ..model.lpv import LpvModel, drive_filter_ss
 from .bspline import UniformBasis
 from .fbs import _dense_basis
 from .inverse import InverseConfig, _round_to, inverse_dynamics_force
-from .kernels import drive_kernel, drive_tail_samples, mech_arrays, mech_kernels, mech_tail_samples
+from .kernels import drive_kernel, drive_tail_samples, mech_arrays, mech_kernels, mech_tail_samples, modal_foh
 from .ltv import simulate_lti
 
 __all__ = ["FbsStream", "StreamingInverse", "carriage_derivatives"]
@@ -46,9 +46,12 @@ class FbsStream:
     """
 
     def __init__(self, kernel: np.ndarray, basis: UniformBasis, window: int, advance: int, reg: float,
-                 row_stride: int = 1):
+                 row_stride: int = 1, channels: int = 1):
         self.K = np.asarray(kernel, float)
         self.n_in, self.L, self.n_out = self.K.shape
+        if channels > 1 and (self.n_in != 1 or self.n_out != 1):
+            raise ValueError("several channels need a single-input single-output kernel")
+        self.C = channels  # independent signals through the same kernel (solved together)
         self.basis, self.W, self.A, self.reg, self.rs = basis, window, advance, reg, row_stride
         m = basis.m
         if window % m or advance % m or not (0 < advance < window):
@@ -65,12 +68,12 @@ class FbsStream:
         self._tail_cache: dict[int, tuple] = {}
         # buffers indexed from sample `off`
         self.off = 0
-        self.tgt = np.zeros((0, self.n_out))
+        self.tgt = np.zeros((0, self.n_out * self.C))
         self.pin = np.zeros(0, bool)  # rows where the spline itself must be zero
         self.pin_weight = 1e3
-        self.pred = np.zeros((window + self.L + 1, self.n_out))
+        self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
         self.w0 = 0
-        self.coef = np.zeros((0, self.n_in))  # committed coefficients of bases [cj0, cj0 + len)
+        self.coef = np.zeros((0, self.n_in * self.C))  # committed coefficients of bases [cj0, cj0 + len)
         self.cj0 = 0
         self.done = 0  # samples whose spline value has been returned
         self.shape = basis.shape(0)
@@ -80,7 +83,7 @@ class FbsStream:
         a = self.w0 - self.off
         need = a + rows + self.L + W
         if need > len(self.pred):
-            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred), self.n_out))])
+            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred), self.pred.shape[1]))])
         resid = self.tgt[a:a + rows] - self.pred[a:a + rows]
         if rows == W:
             Phi, factor, lam = self.Phi, self.factor, self.lam
@@ -111,20 +114,29 @@ class FbsStream:
             G += wgt * Bk.T @ Bk
             factor = cho_factor(G, lower=True, check_finite=False)
         idx = np.clip(np.arange(nJ) * m + self.basis.greville_offset(), 0, rows - 1) + a
-        prior = self.tgt[idx][:, : self.n_in] if self.n_in == self.n_out else np.zeros((nJ, self.n_in))
-        g = Phi.T @ resid[:: self.rs].reshape(-1) + lam * prior.reshape(-1)
-        c = cho_solve(factor, g, check_finite=False).reshape(nJ, self.n_in)
+        if self.C > 1:  # one kernel, several signals: a matrix right-hand side
+            g = Phi.T @ resid[:: self.rs] + lam * self.tgt[idx]
+            c = cho_solve(factor, g, check_finite=False)
+        else:
+            prior = self.tgt[idx][:, : self.n_in] if self.n_in == self.n_out else np.zeros((nJ, self.n_in))
+            g = Phi.T @ resid[:: self.rs].reshape(-1) + lam * prior.reshape(-1)
+            c = cho_solve(factor, g, check_finite=False).reshape(nJ, self.n_in)
         if not np.all(np.isfinite(c)):
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
         n_commit = nJ if final else self.A // m
         c = c[:n_commit]
         # predicted output of the committed bases (overlap-add of identical kernels)
-        up = np.zeros((n_commit * m, self.n_in))
+        up = np.zeros((n_commit * m, c.shape[1]))
         up[::m] = c
-        for i in range(self.n_in):
-            for o in range(self.n_out):
-                y = np.convolve(up[:, i], self.K[i, :, o])
-                self.pred[a:a + len(y), o] += y
+        if self.C > 1:
+            for ch in range(self.C):
+                y = np.convolve(up[:, ch], self.K[0, :, 0])
+                self.pred[a:a + len(y), ch] += y
+        else:
+            for i in range(self.n_in):
+                for o in range(self.n_out):
+                    y = np.convolve(up[:, i], self.K[i, :, o])
+                    self.pred[a:a + len(y), o] += y
         self.coef = np.concatenate([self.coef, c])
         self.w0 += n_commit * m
 
@@ -132,16 +144,16 @@ class FbsStream:
         """Spline values for samples [done, upto) (all their bases committed)."""
         m, sup = self.m, self.basis.support
         n = upto - self.done
-        out = np.zeros((max(n, 0), self.n_in))
+        out = np.zeros((max(n, 0), self.coef.shape[1]))
         if n <= 0:
             return out
         j_lo = max(self.cj0, (self.done - sup) // m)
         j_hi = min(self.cj0 + len(self.coef), -(-upto // m))
         if j_hi > j_lo:
             s_lo = j_lo * m
-            up = np.zeros((upto - s_lo + m, self.n_in))
+            up = np.zeros((upto - s_lo + m, self.coef.shape[1]))
             up[: (j_hi - j_lo) * m: m] = self.coef[j_lo - self.cj0:j_hi - self.cj0]
-            for i in range(self.n_in):
+            for i in range(up.shape[1]):
                 y = np.convolve(up[:, i], self.shape)[self.done - s_lo:upto - s_lo]
                 out[: len(y), i] = y
         self.done = upto
@@ -154,7 +166,7 @@ class FbsStream:
     def feed(self, target: np.ndarray, pin: np.ndarray | None = None) -> np.ndarray:
         """Add target rows (and optionally a mask of rows where the spline must vanish); returns
         spline values of samples that became final (in order)."""
-        target = np.asarray(target, float).reshape(-1, self.n_out)
+        target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
         end = self.off + len(self.tgt)
@@ -243,6 +255,7 @@ class StreamingInverse:
         self.A0 = A0[0]
         self.Bf = np.zeros((6, 3))
         self.Bf[3:] = np.linalg.inv(mats0.M[0])
+        self.foh0 = modal_foh(self.A0[None], self.Bf[None], dt)
         self.zA = None
         self.g_last = None
         L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
@@ -253,13 +266,16 @@ class StreamingInverse:
         dwin = _round_to(int(round(cfg.drive_window_s / dt)), m)
         dadv = _round_to(int(round(cfg.drive_advance_s / dt)), m)
         self.drive, self.dfilt = [], []
-        for i in range(3):
-            d0, d1, d2 = mats0.d0[i], mats0.d1[i], mats0.d2[i]
-            lag, dly = mats0.lag_s[i], mats0.delay_s[i]
+        params = [(mats0.d0[i], mats0.d1[i], mats0.d2[i], mats0.lag_s[i], mats0.delay_s[i]) for i in range(3)]
+        self.shared_drive = all(p == params[0] for p in params)  # one solve for the three towers
+        for i in range(1 if self.shared_drive else 3):
+            d0, d1, d2, lag, dly = params[i]
             Lb = self.basis.support + drive_tail_samples(d0, d2, lag, dt)
             kb = drive_kernel(d0, d1, d2, lag, dly, self.basis, Lb)
-            self.drive.append(FbsStream(kb[None, :, None], self.basis, dwin, dadv, cfg.reg))
-            self.dfilt.append(_DriveFilter(d0, d1, d2, lag, dly, dt))
+            self.drive.append(FbsStream(kb[None, :, None], self.basis, dwin, dadv, cfg.reg,
+                                        channels=3 if self.shared_drive else 1))
+        for i in range(3):
+            self.dfilt.append(_DriveFilter(*params[i], dt))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -282,9 +298,10 @@ class StreamingInverse:
         g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X)
         # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
         if self.zA is None:
-            tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt)
+            tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt, foh=self.foh0)
         else:
-            t2, self.zA = simulate_lti(self.A0, self.Bf, np.concatenate([self.g_last, g]), self.dt, z0=self.zA)
+            t2, self.zA = simulate_lti(self.A0, self.Bf, np.concatenate([self.g_last, g]), self.dt, z0=self.zA,
+                                       foh=self.foh0)
             tgt = t2[1:]
         self.g_last = g[-1:]
         return self._stage2(q, self.mech.feed(tgt[:, :3]))
@@ -294,12 +311,23 @@ class StreamingInverse:
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
         pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        u = qn + delta
+        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, final=False))
+
+    def _drive_stage(self, qn, u, pn, final: bool) -> list:
+        """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
+        tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
+        if self.shared_drive:
+            e = self.drive[0].feed(tgt, pn)
+            if final:
+                e = np.concatenate([e, self.drive[0].finish()])
+            return [e[:, i] for i in range(3)]
         eps = []
         for i in range(3):
-            u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
-            eps.append(self.drive[i].feed((u[:, i] - u_ref)[:, None], pn)[:, 0])
-        return self._emit(qn, eps)
+            e = self.drive[i].feed(tgt[:, i:i + 1], pn)[:, 0]
+            if final:
+                e = np.concatenate([e, self.drive[i].finish()[:, 0]])
+            eps.append(e)
+        return eps
 
     def _emit(self, qn, eps) -> np.ndarray:
         self.qbuf_c = np.concatenate([self.qbuf_c, qn])
@@ -358,11 +386,4 @@ class StreamingInverse:
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
         pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        u = qn + delta
-        eps = []
-        for i in range(3):
-            u_ref = self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]
-            e1 = self.drive[i].feed((u[:, i] - u_ref)[:, None], pn)[:, 0]
-            e2 = self.drive[i].finish()[:, 0]
-            eps.append(np.concatenate([e1, e2]))
-        return self._emit(qn, eps)
+        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, final=True))

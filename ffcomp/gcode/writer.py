@@ -20,8 +20,8 @@ the compensated nozzle positions, and every other line kept in place.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from array import array
+from dataclasses import dataclass, field
 from typing import IO, Iterator
 
 import numpy as np
@@ -226,7 +226,7 @@ class GcodeWriter:
             de_ref = es[j] - es[i]
             self.e_ref_cum += de_ref
             de = round(self.e_ref_cum - self.e_emitted, 5)
-            if dist < 1e-4:
+            if dist < 1e-3:  # under a micrometre: the firmware would crawl; hold instead
                 if abs(de) > 1e-6:
                     w(f"G1 E{de:.5f} F{max(abs(de) / dt, 1e-3) * 60:.1f}\n")
                     self.e_emitted += de

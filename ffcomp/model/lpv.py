@@ -25,6 +25,7 @@ Two representations are provided and tested against each other:
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 from typing import Sequence
 
 import control
@@ -245,6 +246,12 @@ def frequency_response(model_or_mats, xyz_m=None, freq_hz=None, *, frame: str = 
 
 def drive_filter_ss(d0, d1, d2, lag_s=0.0, delay_s=0.0, pade_order: int = 6):
     """State-space ``(a, b, c)`` of one drive filter ``F(s)`` (strictly proper, so ``d = 0``)."""
+    a, b, c = _drive_filter_ss(float(d0), float(d1), float(d2), float(lag_s), float(delay_s), int(pade_order))
+    return a.copy(), b.copy(), c.copy()
+
+
+@lru_cache(maxsize=64)
+def _drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order):
     sys = control.tf([d1, d0], [1.0, d2, d0])
     if lag_s > 0:
         sys = sys * control.tf([1.0], [lag_s, 1.0])

@@ -15,7 +15,6 @@ import os
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -93,6 +92,7 @@ class CompensationSummary:
     max_correction_um: float = 0.0
     header_accel_mm_s2: float = 0.0
     restarts: int = 0
+    clamped: int = 0
     warnings: int = 0
     notes: list = field(default_factory=list)
 
@@ -103,7 +103,7 @@ class CompensationSummary:
 class _Predictor:
     """Running LPV prediction of the nozzle error of a command stream (piecewise-frozen model)."""
 
-    def __init__(self, model: LpvModel, dt_s: float, seg: int = 20):
+    def __init__(self, model: LpvModel, dt_s: float, seg: int = 100):
         self.model, self.dt, self.seg = model, dt_s, seg
         self.x = None
         self.w_last = None
@@ -138,8 +138,6 @@ class _Predictor:
         J = jacobian(self.model.geometry, xyz_ref)
         e = np.einsum("nij,nj->ni", J, q - q_ref)
         en = np.sqrt(np.sum(e * e, 1))
-        if os.environ.get("FFCOMP_DEBUG_PRED"):
-            self.trace = getattr(self, "trace", []) + [en]
         self.sq += float(np.sum(en * en))
         self.n += len(en)
         self.mx = max(self.mx, float(en.max()))
@@ -187,40 +185,38 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
     try:
         moves: dict = {}
         plan = GcodePlan(src, profile, lenient=opts.lenient)
-
-        def tee():
-            for mv in plan:
-                moves[mv.index] = mv
-                yield mv
-
         with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf:
             lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
                                      home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm)))
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves)
             pred_before = _Predictor(model, dt) if opts.predict else None
             pred_after = _Predictor(model, dt) if opts.predict else None
-            fifo = _Fifo()
-            inv = None
-            last_q = None
             k_written = 0
+            last_qc = None
             a_peak = 0.0
             v_prev = None
 
-            def emit(qc):
-                nonlocal k_written, a_peak, v_prev
-                if len(qc) == 0:
-                    return
-                meta = fifo.pop(len(qc))
+            def emit(qc, meta):
+                nonlocal k_written, a_peak, v_prev, last_qc
                 xyz = forward(geom, qc)
                 if np.any(~np.isfinite(xyz)):
                     bad = int(np.argmax(~np.isfinite(xyz).all(1)))
                     raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
                                          f"nozzle position (carriages {qc[bad] * 1e3} mm)")
+                fix = np.zeros(len(xyz), bool)
                 if opts.z_mode == "hold":
                     hold = _z_held(meta["move_index"], moves)
                     xyz[hold, 2] = meta["xyz"][hold, 2]
+                    fix |= hold
+                # the firmware refuses positions outside its limits: a correction that pokes past
+                # them (at z_max after homing, at the rim) is clamped to the boundary
+                cl = _clamp_to_workspace(xyz, geom)
+                if cl.any():
+                    summ.clamped += int(cl.sum())
+                    fix |= cl
+                if fix.any():
                     qc = qc.copy()
-                    qc[hold] = inverse(geom, xyz[hold])
+                    qc[fix] = inverse(geom, xyz[fix])
                 summ.max_correction_um = max(summ.max_correction_um,
                                              float(np.max(np.abs(qc - meta["q"]))) * 1e6)
                 # peak acceleration of the intended nozzle path (for the header)
@@ -233,62 +229,23 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
                 if len(v):
                     v_prev = v[-1:]
                 qf.write(qc.astype(np.float32).tobytes())
+                new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
+                if new_stream:  # after a homing the machine stands at the new stream's first point
+                    writer.last_pt = None
                 if pred_after is not None:
+                    if new_stream:
+                        pred_after.reset()
+                        pred_before.reset()
                     pred_after.push(qc, meta["q"], meta["xyz"])
                     pred_before.push(meta["q"], meta["q"], meta["xyz"])
                 writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"])
                 k_written += len(qc)
+                last_qc = qc[-1].copy()
                 if progress is not None:
                     progress(int(meta["lineno"][-1]), total_lines)
 
-            def push_post(meta):
-                n_post = int(round(icfg.post_s / dt))
-                qq, xx, ee, mi, ln = meta
-                fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
-                          e=np.repeat(ee, n_post), move_index=np.repeat(mi, n_post), lineno=np.repeat(ln, n_post))
-
-            last_meta = None
-            for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz,
-                                     block_len=opts.block_len, overlap=0, path=src):
-                q = blk.q_m
-                # homing (or any jump) restarts the compensation stream
-                jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
-                if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
-                    jumps = np.concatenate([[0], jumps])
-                pieces = np.split(np.arange(len(q)), jumps)
-                for pc in pieces:
-                    if len(pc) == 0:
-                        continue
-                    if inv is not None and pc[0] in jumps:
-                        push_post(last_meta)
-                        emit(inv.finish())
-                        inv = None
-                        summ.restarts += 1
-                        if pred_after is not None:
-                            pred_after.reset()
-                            pred_before.reset()
-                    sl = slice(pc[0], pc[-1] + 1)
-                    if inv is None:
-                        inv = StreamingInverse(model, dt, icfg, keep_padding=True)
-                        # the stream starts with a short rest (room to pre-actuate): its rows carry
-                        # the first sample's meaning, so the whole file runs that much later
-                        k = pc[0]
-                        n_pre = inv_pre_samples(icfg, dt)
-                        fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
-                                  e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.repeat(blk.move_index[k:k + 1], n_pre),
-                                  lineno=np.repeat(blk.lineno[k:k + 1], n_pre))
-                    last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]],
-                                 blk.lineno[pc[-1]])
-                    fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
-                              lineno=blk.lineno[sl])
-                    qd, qdd = carriage_derivatives(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
-                    hold = _holds(blk.move_index[sl], moves) if opts.pin_holds else None
-                    emit(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
-                last_q = q[-1].copy()
-                summ.print_time_s = float(blk.t_s[-1])
-            if inv is not None:
-                push_post(last_meta)
-                emit(inv.finish())
+            for qc, meta in compensated_stream(plan, moves, profile, model, icfg, opts, summ, src):
+                emit(qc, meta)
             writer.finish()
         summ.warnings = plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
         summ.segments = writer.stats.segments
@@ -334,12 +291,77 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
         for p in (body_path, qfile, final_tmp):
             if p and os.path.exists(p):
                 os.unlink(p)
-    if os.environ.get("FFCOMP_DEBUG_PRED") and opts.predict:
-        np.save("/tmp/pred_after.npy", np.concatenate(pred_after.trace))
-        np.save("/tmp/pred_before.npy", np.concatenate(pred_before.trace))
     summ.wall_time_s = time.perf_counter() - t_wall
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
+
+
+def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, icfg: InverseConfig, opts,
+                       summ: CompensationSummary, src: str):
+    """Compensated carriage commands of a planned file, in order, with each sample's reference.
+
+    Yields ``(q_cmd (n, 3), meta)``; ``meta`` holds the reference ``q``, ``xyz`` (m), ``e`` (mm),
+    ``move_index`` and ``lineno`` of the same samples.  Planned moves are recorded in ``moves``
+    (index -> PlannedMove) as they go by.  A homing (a jump of the carriages) ends one compensation
+    stream and starts the next; each stream begins with ``pre_s`` and ends with ``post_s`` of rest,
+    which the output keeps (so the command can pre-actuate the first move and settle after the last).
+    """
+    geom = model.geometry
+    dt = 1.0 / profile.limits.sample_rate_hz
+    fifo = _Fifo()
+    inv = None
+    last_q = None
+    last_meta = None
+
+    def tee():
+        for mv in plan:
+            moves[mv.index] = mv
+            yield mv
+
+    def out(qc):
+        if len(qc):
+            yield qc, fifo.pop(len(qc))
+
+    def push_post(meta):
+        n_post = int(round(icfg.post_s / dt))
+        qq, xx, ee, mi, ln = meta
+        fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
+                  e=np.repeat(ee, n_post), move_index=np.repeat(mi, n_post), lineno=np.repeat(ln, n_post))
+
+    for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz, block_len=opts.block_len,
+                             overlap=0, path=src):
+        q = blk.q_m
+        # homing (or any jump) restarts the compensation stream
+        jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
+        if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
+            jumps = np.concatenate([[0], jumps])
+        for pc in np.split(np.arange(len(q)), jumps):
+            if len(pc) == 0:
+                continue
+            if inv is not None and pc[0] in jumps:
+                push_post(last_meta)
+                yield from out(inv.finish())
+                inv = None
+                summ.restarts += 1
+            sl = slice(pc[0], pc[-1] + 1)
+            if inv is None:
+                inv = StreamingInverse(model, dt, icfg, keep_padding=True)
+                k = pc[0]
+                n_pre = inv_pre_samples(icfg, dt)
+                fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
+                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.repeat(blk.move_index[k:k + 1], n_pre),
+                          lineno=np.repeat(blk.lineno[k:k + 1], n_pre))
+            last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
+            fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
+                      lineno=blk.lineno[sl])
+            qd, qdd = carriage_derivatives(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
+            hold = _holds(blk.move_index[sl], moves) if opts.pin_holds else None
+            yield from out(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
+        last_q = q[-1].copy()
+        summ.print_time_s = float(blk.t_s[-1])
+    if inv is not None:
+        push_post(last_meta)
+        yield from out(inv.finish())
 
 
 def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
@@ -357,6 +379,18 @@ def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
         if mv is not None and mv.kind != "move":
             out[move_index == mi] = True
     return out
+
+
+def _clamp_to_workspace(xyz: np.ndarray, geom) -> np.ndarray:
+    """Clamp nozzle positions (m) into the z range and print radius in place; returns the mask."""
+    z = xyz[:, 2]
+    bad = (z > geom.z_max_m) | (z < geom.z_min_m)
+    np.clip(z, geom.z_min_m, geom.z_max_m, out=z)
+    r = np.hypot(xyz[:, 0], xyz[:, 1])
+    far = r > geom.print_radius_m
+    if far.any():
+        xyz[far, :2] *= (geom.print_radius_m / r[far])[:, None]
+    return bad | far
 
 
 def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
@@ -427,15 +461,15 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     the whole file's duration is reported separately (``output_print_time_s``).
     """
     intended = np.memmap(qfile, dtype=np.float32, mode="r").reshape(-1, 3)
-    seg = {} if segments is None else {
-        int(segments[i]) + head_len: (int(segments[i + 1]), int(segments[i + 2]), int(segments[i + 3]))
-        for i in range(0, len(segments), 4)}
+    # the writer's segment table: body line, first and last sample, catch-up flag (4 ints a row)
+    tab = np.frombuffer(segments, dtype=np.int64).reshape(-1, 4) if segments is not None and len(segments) \
+        else np.zeros((0, 4), np.int64)
+    seg_lines = tab[:, 0] + head_len
     dt = 1.0 / profile.limits.sample_rate_hz
     worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
     worst_cu = 0.0
     t_end = 0.0
     batch_pos, batch_k = [], []
-    batch_info: dict = {}
 
     batch_cu = []
     n_batch = 0
@@ -453,9 +487,6 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         if CU.any():
             worst_cu = max(worst_cu, float(np.max(d[CU])))
             d = np.where(CU, 0.0, d)
-        if os.environ.get("FFCOMP_DEBUG_SELFCHECK"):
-            for j in np.argsort(-d)[:3]:
-                print("selfcheck", int(K[j]), float(d[j]) * 1e6, batch_info.get(int(K[j])))
         i = int(np.nanargmax(d))
         if d[i] > worst:
             worst, worst_k = float(d[i]), int(K[i])
@@ -465,28 +496,40 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         batch_k.clear()
         batch_cu.clear()
 
+    rows: list[tuple] = []
+
+    def flush_moves():
+        nonlocal n_batch
+        if not rows:
+            return
+        R = np.array(rows, dtype=float)
+        rows.clear()
+        ka, kb, cu = R[:, 0].astype(np.int64), R[:, 1].astype(np.int64), R[:, 2].astype(bool)
+        cnt = kb - ka
+        idx = np.repeat(np.arange(len(R)), cnt)
+        k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
+        tau = np.minimum(k * dt, R[idx, 10])
+        s_ = _distance_v(R[idx, 3], R[idx, 4], R[idx, 5], R[idx, 6], R[idx, 7], tau)
+        P = R[idx, 11:14] + s_[:, None] * R[idx, 14:17]
+        batch_pos.append(P)
+        batch_k.append(ka[idx] + k)
+        batch_cu.append(cu[idx])
+        n_batch += len(k)
+        flush()
+
     for mv in GcodePlan(path, profile, lenient=True):
         t_end = mv.t_end_s
-        ks = seg.get(mv.lineno)
-        if ks is None or mv.kind != "move":
+        if mv.kind != "move":
             continue
-        ka, kb, cu = ks
-        k = np.arange(ka + 1, kb + 1)
-        # a catch-up segment (and the one after it, which absorbs its timing) is judged separately
-        batch_cu.append(np.full(len(k), bool(cu)))
-        tau = np.minimum((k - ka) * dt, mv.duration_s)
-        s = _distance(mv, tau)
-        batch_pos.append(np.asarray(mv.start_mm[:3])[None] + s[:, None] * np.asarray(mv.unit[:3])[None])
-        if os.environ.get("FFCOMP_DEBUG_SELFCHECK"):
-            for kk in k:
-                batch_info[int(kk)] = (mv.lineno, round(mv.start_v_mm_s, 2), round(mv.cruise_v_mm_s, 2),
-                                       round(mv.end_v_mm_s, 2), round(mv.accel_mm_s2), round(mv.duration_s, 5),
-                                       (kb - ka) * dt)
-        batch_k.append(k)
-        n_batch += len(k)
-        if n_batch > 50000:
-            flush()
-    flush()
+        j = int(np.searchsorted(seg_lines, mv.lineno))
+        if j >= len(seg_lines) or seg_lines[j] != mv.lineno:
+            continue
+        ka, kb, cu = (int(v) for v in tab[j, 1:])
+        rows.append((ka, kb, cu, mv.accel_mm_s2, mv.start_v_mm_s, mv.cruise_v_mm_s, mv.accel_t_s, mv.cruise_t_s,
+                     0.0, 0.0, mv.duration_s, *mv.start_mm[:3], *mv.unit[:3]))
+        if len(rows) >= 20000:
+            flush_moves()
+    flush_moves()
     summ.output_print_time_s = t_end
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
@@ -501,14 +544,9 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
             f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
 
 
-def _distance(mv, tau: np.ndarray) -> np.ndarray:
-    """Distance along a planned trapezoid at times ``tau`` after its start (vectorised), mm."""
-    a, v0, vc = mv.accel_mm_s2, mv.start_v_mm_s, mv.cruise_v_mm_s
-    ta, tc = mv.accel_t_s, mv.cruise_t_s
+def _distance_v(a, v0, vc, ta, tc, tau):
+    """Distance along planned trapezoids at times ``tau`` after their starts (all arrays), mm."""
     d_a = (v0 + vc) * 0.5 * ta
-    s1 = v0 * tau + 0.5 * a * tau * tau
-    t2 = tau - ta
-    s2 = d_a + vc * t2
     t3 = tau - ta - tc
-    s3 = d_a + vc * tc + vc * t3 - 0.5 * a * t3 * t3
-    return np.where(tau < ta, s1, np.where(tau < ta + tc, s2, s3))
+    return np.where(tau < ta, v0 * tau + 0.5 * a * tau * tau,
+                    np.where(tau < ta + tc, d_a + vc * (tau - ta), d_a + vc * tc + vc * t3 - 0.5 * a * t3 * t3))

@@ -1,0 +1,427 @@
+"""A model of Klipper's motion planning (``klippy/toolhead.py``, ``kinematics/delta.py``,
+``kinematics/extruder.py``): the same arithmetic, so the planned times match a Klipper host.
+
+Modelled (Klipper 0.12 / 2024-2025 sources)
+    * ``Move``: speed capped at ``max_velocity``; moves shorter than 1e-9 mm in XYZ are extruder-only moves
+      (accel 99999999.9, speed not capped by ``max_velocity``); ``delta_v2 = 2 d a``,
+      ``smooth_delta_v2 = 2 d max_accel_to_decel`` with ``max_accel_to_decel = max_accel (1 -
+      minimum_cruise_ratio)``; ``limit_speed``.
+    * ``calc_junction``: cruise speeds of both moves, the previous move's reachable speed, the extruder's
+      ``instantaneous_corner_velocity / |delta extrusion ratio|``, and the corner rule of
+      :func:`ffcomp.gcode.junction.klipper_corner_v2` (junction deviation from
+      ``square_corner_velocity``, centripetal limit); ``max_smoothed_v2``.
+    * ``LookAheadQueue``: the backward pass with the smoothed ("accel_to_decel") profile and the delayed
+      full-acceleration moves, lazy flushing once ``junction_flush`` (0.25 s of queued minimum move
+      time; 2 s after a full flush) is used up, full flush on G4 / M400 / M84 / G28 and at the end;
+      print time advanced by each flushed move's accel_t + cruise_t + decel_t; G4 adds its delay after the
+      last move.
+    * Delta ``check_move``: out-of-range end points (print radius, ``arm - radius``, the tower-ratio
+      limit, z range, the cone above ``limit_z``) raise; moves with Z travel are limited to
+      ``max_z_velocity * d/|dz|`` and ``max_z_accel * d/|dz|``; moves reaching past ``slow_xy2`` /
+      ``very_slow_xy2`` (from ``ratio_to_xy``) are limited to half / a quarter of the configured
+      ``max_velocity`` and ``max_accel``.
+    * Extruder ``check_move``: retractions and moves without XY travel are limited by
+      ``max_extrude_only_velocity`` / ``_accel`` scaled by the extrusion ratio;
+      ``max_extrude_only_distance`` raises.
+    * ``SET_VELOCITY_LIMIT`` (VELOCITY, ACCEL, SQUARE_CORNER_VELOCITY, MINIMUM_CRUISE_RATIO, and
+      ACCEL_TO_DECEL converted to a cruise ratio) and ``M204`` (S; else min(P, T) when both are given;
+      otherwise ignored, as Klipper does).  M201 / M203 / M205 are unknown to Klipper and ignored.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..errors import GcodeError, KinematicsError
+from .junction import JUNCTION_RULES, klipper_junction_deviation
+from .moves import DWELL, EXTRUDE, MOVE, PlannedMove
+
+__all__ = ["KlipperPlanner", "KlipperDelta", "LOOKAHEAD_FLUSH_TIME", "BUFFER_TIME_HIGH", "SLOW_RATIO"]
+
+LOOKAHEAD_FLUSH_TIME = 0.250
+BUFFER_TIME_HIGH = 2.0
+SLOW_RATIO = 3.0
+MOTOR_OFF_DWELL_S = 0.1  # DISABLE_STALL_TIME, applied before and after M18/M84
+
+
+class _Move:
+    """Klipper's ``Move`` (mutable, internal)."""
+
+    __slots__ = ("lineno", "start", "end", "axes_d", "axes_r", "move_d", "accel", "jd", "is_kin",
+                 "min_move_t", "max_start_v2", "max_cruise_v2", "delta_v2", "max_smoothed_v2",
+                 "smooth_delta_v2", "next_junction_v2", "start_v", "cruise_v", "end_v", "accel_t",
+                 "cruise_t", "decel_t")
+
+    def limit_speed(self, speed: float, accel: float) -> None:
+        speed2 = speed ** 2
+        if speed2 < self.max_cruise_v2:
+            self.max_cruise_v2 = speed2
+            self.min_move_t = self.move_d / speed
+        self.accel = min(self.accel, accel)
+        self.delta_v2 = 2.0 * self.move_d * self.accel
+        self.smooth_delta_v2 = min(self.smooth_delta_v2, self.delta_v2)
+
+    def set_junction(self, start_v2: float, cruise_v2: float, end_v2: float) -> None:
+        half_inv_accel = 0.5 / self.accel
+        accel_d = (cruise_v2 - start_v2) * half_inv_accel
+        decel_d = (cruise_v2 - end_v2) * half_inv_accel
+        cruise_d = self.move_d - accel_d - decel_d
+        self.start_v = start_v = math.sqrt(start_v2)
+        self.cruise_v = cruise_v = math.sqrt(cruise_v2)
+        self.end_v = end_v = math.sqrt(end_v2)
+        self.accel_t = accel_d / ((start_v + cruise_v) * 0.5)
+        self.cruise_t = cruise_d / cruise_v
+        self.decel_t = decel_d / ((end_v + cruise_v) * 0.5)
+
+
+class KlipperDelta:
+    """Klipper's delta ``check_move``: workspace limits and the speed limits near the edge and in Z.
+
+    Built from the profile the way Klipper reads its ``[printer]`` / ``[stepper_*]`` sections:
+    ``delta_radius`` = the largest tower radius, ``arm_length`` per tower, ``print_radius``,
+    ``position_endstop`` = ``z_max_mm`` (so ``max_z``), ``minimum_z_position`` = ``z_min_mm``, step
+    distance ``1 / steps_per_mm``.
+    """
+
+    def __init__(self, profile, max_velocity: float, max_accel: float):
+        g, lim = profile.geometry, profile.limits
+        self.max_velocity = max_velocity
+        self.max_accel = max_accel
+        self.max_z_velocity = min(lim.max_z_velocity_mm_s, max_velocity)
+        self.max_z_accel = min(lim.max_z_accel_mm_s2, max_accel)
+        self.radius = radius = max(g.delta_radius_mm)
+        arms = list(g.arm_length_mm)
+        self.min_arm_length = min_arm = min(arms)
+        self.min_arm2 = min_arm ** 2
+        self.max_z = g.z_max_mm
+        self.min_z = g.z_min_mm
+        abs_endstops = [self.max_z + math.sqrt(a ** 2 - radius ** 2) for a in arms]
+        self.limit_z = min(ep - a for ep, a in zip(abs_endstops, arms, strict=True))
+        half_step = 0.5 / lim.steps_per_mm
+
+        def ratio_to_xy(ratio):
+            return ratio * math.sqrt(min_arm ** 2 / (ratio ** 2 + 1.0) - half_step ** 2) + half_step - radius
+
+        self.slow_xy2 = ratio_to_xy(SLOW_RATIO) ** 2
+        self.very_slow_xy2 = ratio_to_xy(2.0 * SLOW_RATIO) ** 2
+        self.max_xy2 = min(g.print_radius_mm, min_arm - radius, ratio_to_xy(4.0 * SLOW_RATIO)) ** 2
+        self.home_position = (0.0, 0.0, self.max_z)
+        self.limit_xy2 = -1.0
+
+    def set_position(self) -> None:
+        self.limit_xy2 = -1.0
+
+    def check_move(self, m: _Move) -> str | None:
+        """Apply the limits to ``m``; return an error message if the move is out of range."""
+        end = m.end
+        end_xy2 = end[0] ** 2 + end[1] ** 2
+        if end_xy2 <= self.limit_xy2 and not m.axes_d[2]:
+            return None
+        end_z = end[2]
+        limit_xy2 = self.max_xy2
+        if end_z > self.limit_z:
+            above = end_z - self.limit_z
+            allowed = self.radius - math.sqrt(self.min_arm2 - (self.min_arm_length - above) ** 2)
+            limit_xy2 = min(limit_xy2, allowed ** 2)
+        if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
+            hp = self.home_position
+            if (end[0], end[1]) != hp[:2] or end_z < self.min_z or end_z > hp[2]:
+                return "Move out of range: %.3f %.3f %.3f [%.3f]" % tuple(end)
+            limit_xy2 = -1.0
+        if m.axes_d[2]:
+            z_ratio = m.move_d / abs(m.axes_d[2])
+            m.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
+            limit_xy2 = -1.0
+        extreme_xy2 = max(end_xy2, m.start[0] ** 2 + m.start[1] ** 2)
+        if extreme_xy2 > self.slow_xy2:
+            r = 0.5
+            if extreme_xy2 > self.very_slow_xy2:
+                r = 0.25
+            m.limit_speed(self.max_velocity * r, self.max_accel * r)
+            limit_xy2 = -1.0
+        self.limit_xy2 = min(limit_xy2, self.slow_xy2)
+        return None
+
+
+class KlipperPlanner:
+    """Klipper's toolhead + lookahead queue, fed one G-code record at a time.
+
+    Parameters
+    ----------
+    profile : PrinterProfile
+    path : str
+        File name for error messages.
+    max_extrude_only_distance_mm : float or None
+        Klipper's ``max_extrude_only_distance`` (50 mm default); None disables the check.
+    start_position_mm : (x, y, z, e)
+
+    Use :meth:`feed` for every record and :meth:`finish` at the end; both return the moves that became
+    final, in order.
+    """
+
+    name = "klipper"
+
+    def __init__(self, profile, *, path: str = "<gcode>", max_extrude_only_distance_mm: float | None = 50.0,
+                 start_position_mm=(0.0, 0.0, 0.0, 0.0)):
+        lim = profile.limits
+        self.path = path
+        self.max_velocity = lim.max_velocity_mm_s
+        self.max_accel = lim.max_accel_mm_s2
+        self.min_cruise_ratio = lim.minimum_cruise_ratio
+        self.square_corner_velocity = lim.square_corner_velocity_mm_s
+        self.junction_deviation = self.max_accel_to_decel = 0.0
+        self._calc_junction_deviation()
+        self.instant_corner_v = lim.instantaneous_corner_velocity_mm_s
+        self.max_e_velocity = lim.max_extrude_only_velocity_mm_s
+        self.max_e_accel = lim.max_extrude_only_accel_mm_s2
+        self.max_e_dist = max_extrude_only_distance_mm
+        self.kin = KlipperDelta(profile, self.max_velocity, self.max_accel)
+        self._corner_v2 = JUNCTION_RULES[self.name]
+        self.commanded_pos = [float(v) for v in start_position_mm]
+        self.queue: list[_Move] = []
+        self.junction_flush = BUFFER_TIME_HIGH
+        self.need_prime = True
+        self.print_time = 0.0
+        self.out: list[PlannedMove] = []
+        self.n_out = 0
+        self.ignored_commands = 0
+        self._limits = {
+            "SET_VELOCITY_LIMIT": self._set_velocity_limit,
+            "M204": self._m204,
+        }
+
+    # ------------------------------------------------------------------ limits
+    def _calc_junction_deviation(self) -> None:
+        self.junction_deviation = klipper_junction_deviation(self.square_corner_velocity, self.max_accel)
+        self.max_accel_to_decel = self.max_accel * (1.0 - self.min_cruise_ratio)
+
+    def limits(self, op, line) -> None:
+        h = self._limits.get(op.command)
+        if h is None:
+            self.ignored_commands += 1
+            return
+        h(op)
+
+    def _set_velocity_limit(self, op) -> None:
+        mcr = op.minimum_cruise_ratio
+        if mcr is None and op.accel_to_decel_mm_s2 is not None:
+            base = op.accel_mm_s2 if op.accel_mm_s2 is not None else self.max_accel
+            mcr = 1.0 - min(1.0, op.accel_to_decel_mm_s2 / base)
+        if op.velocity_mm_s is not None:
+            self.max_velocity = op.velocity_mm_s
+        if op.accel_mm_s2 is not None:
+            self.max_accel = op.accel_mm_s2
+        if op.square_corner_velocity_mm_s is not None:
+            self.square_corner_velocity = op.square_corner_velocity_mm_s
+        if mcr is not None:
+            self.min_cruise_ratio = mcr
+        self._calc_junction_deviation()
+
+    def _m204(self, op) -> None:
+        accel = op.accel_mm_s2
+        if accel is None:
+            p, t = op.print_accel_mm_s2, op.travel_accel_mm_s2
+            if p is None or t is None:
+                self.ignored_commands += 1  # Klipper: 'Invalid M204 command'
+                return
+            accel = min(p, t)
+        self.max_accel = accel
+        self._calc_junction_deviation()
+
+    # ------------------------------------------------------------------ moves
+    def move(self, end, speed: float, line) -> None:
+        """``toolhead.move(newpos, speed)`` from the commanded position (Klipper's ``Move`` inlined)."""
+        sx, sy, sz, se = self.commanded_pos
+        ex, ey, ez, ee = end
+        dx = ex - sx
+        dy = ey - sy
+        dz = ez - sz
+        de = ee - se
+        move_d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        m = _Move()
+        if move_d < 0.000000001:
+            # extruder-only move
+            ex, ey, ez = sx, sy, sz
+            dx = dy = dz = 0.0
+            move_d = abs(de)
+            if not move_d:
+                return
+            inv = 1.0 / move_d
+            accel = 99999999.9
+            velocity = speed
+            m.is_kin = is_kin = False
+        else:
+            inv = 1.0 / move_d
+            accel = self.max_accel
+            velocity = min(speed, self.max_velocity)
+            m.is_kin = is_kin = True
+        m.lineno = line.lineno
+        m.jd = self.junction_deviation
+        m.accel = accel
+        m.start = (sx, sy, sz, se)
+        m.end = (ex, ey, ez, ee)
+        m.axes_d = (dx, dy, dz, de)
+        m.axes_r = axes_r = (dx * inv, dy * inv, dz * inv, de * inv)
+        m.move_d = move_d
+        m.min_move_t = move_d / velocity
+        m.max_start_v2 = 0.0
+        m.max_cruise_v2 = velocity ** 2
+        m.delta_v2 = 2.0 * move_d * accel
+        m.max_smoothed_v2 = 0.0
+        m.smooth_delta_v2 = 2.0 * move_d * self.max_accel_to_decel
+        m.next_junction_v2 = 999999999.9
+        if is_kin:
+            err = self.kin.check_move(m)
+            if err is not None:
+                raise KinematicsError(f"{self.path}:{line.lineno}: {err}: {line.text.strip()!r}")
+        if de:
+            self._extruder_check_move(m, line)
+        self.commanded_pos = [ex, ey, ez, ee]
+        q = self.queue
+        if not q:
+            q.append(m)
+            return
+        prev = q[-1]
+        q.append(m)
+        if is_kin and prev.is_kin:
+            # Move.calc_junction: cruise speeds, reachable speed, extruder and corner limits
+            pr = prev.axes_r
+            diff_r = axes_r[3] - pr[3]
+            extruder_v2 = (self.instant_corner_v / abs(diff_r)) ** 2 if diff_r else m.max_cruise_v2
+            max_start_v2 = min(m.max_cruise_v2, prev.max_cruise_v2, prev.next_junction_v2,
+                               prev.max_start_v2 + prev.delta_v2, extruder_v2)
+            junction_cos_theta = -(axes_r[0] * pr[0] + axes_r[1] * pr[1] + axes_r[2] * pr[2])
+            corner = self._corner_v2(junction_cos_theta, m.jd, m.accel, m.delta_v2,
+                                     prev.jd, prev.accel, prev.delta_v2)
+            if corner < max_start_v2:
+                max_start_v2 = corner
+            m.max_start_v2 = max_start_v2
+            m.max_smoothed_v2 = min(max_start_v2, prev.max_smoothed_v2 + prev.smooth_delta_v2)
+        self.junction_flush -= m.min_move_t
+        if self.junction_flush <= 0.0:
+            self._process(lazy=True)
+
+    def _extruder_check_move(self, m: _Move, line) -> None:
+        axis_r = m.axes_r[3]
+        if (not m.axes_d[0] and not m.axes_d[1]) or axis_r < 0.0:
+            if self.max_e_dist is not None and abs(m.axes_d[3]) > self.max_e_dist:
+                msg = "Extrude only move too long (%.3fmm vs %.3fmm)" % (m.axes_d[3], self.max_e_dist)
+                raise GcodeError(self.path, line.lineno, msg, line.text)
+            inv_extrude_r = 1.0 / abs(axis_r)
+            m.limit_speed(self.max_e_velocity * inv_extrude_r, self.max_e_accel * inv_extrude_r)
+
+    # ------------------------------------------------------------------ lookahead
+    def _flush_queue(self, lazy: bool) -> list[_Move]:
+        """``LookAheadQueue.flush``: finalize the moves whose profile can no longer change."""
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME
+        update_flush_count = lazy
+        queue = self.queue
+        flush_count = len(queue)
+        delayed: list = []
+        next_end_v2 = next_smoothed_v2 = peak_cruise_v2 = 0.0
+        for i in range(flush_count - 1, -1, -1):
+            move = queue[i]
+            # min() written out: this loop is the planner's hot path
+            reachable_start_v2 = next_end_v2 + move.delta_v2
+            start_v2 = move.max_start_v2
+            if not start_v2 <= reachable_start_v2:
+                start_v2 = reachable_start_v2
+            reachable_smoothed_v2 = next_smoothed_v2 + move.smooth_delta_v2
+            smoothed_v2 = move.max_smoothed_v2
+            if not smoothed_v2 <= reachable_smoothed_v2:
+                smoothed_v2 = reachable_smoothed_v2
+            if smoothed_v2 < reachable_smoothed_v2:
+                # this move can accelerate
+                if smoothed_v2 + move.smooth_delta_v2 > next_smoothed_v2 or delayed:
+                    # ... and decelerate, or it is a full-accel move after a full-decel one
+                    if update_flush_count and peak_cruise_v2:
+                        flush_count = i
+                        update_flush_count = False
+                    peak_cruise_v2 = min(move.max_cruise_v2, (smoothed_v2 + reachable_smoothed_v2) * 0.5)
+                    if delayed:
+                        if not update_flush_count and i < flush_count:
+                            mc_v2 = peak_cruise_v2
+                            for dm, ms_v2, me_v2 in reversed(delayed):
+                                mc_v2 = min(mc_v2, ms_v2)
+                                dm.set_junction(min(ms_v2, mc_v2), mc_v2, min(me_v2, mc_v2))
+                        del delayed[:]
+                if not update_flush_count and i < flush_count:
+                    cruise_v2 = min((start_v2 + reachable_start_v2) * 0.5, move.max_cruise_v2, peak_cruise_v2)
+                    move.set_junction(min(start_v2, cruise_v2), cruise_v2, min(next_end_v2, cruise_v2))
+            else:
+                # a full-acceleration move: wait until the peak speed is known
+                delayed.append((move, start_v2, next_end_v2))
+            next_end_v2 = start_v2
+            next_smoothed_v2 = smoothed_v2
+        if update_flush_count or not flush_count:
+            return []
+        if delayed and not lazy:  # pragma: no cover - the first queued move can always accelerate
+            mc_v2 = min(d[0].max_cruise_v2 for d in delayed)
+            for dm, ms_v2, me_v2 in reversed(delayed):
+                mc_v2 = min(mc_v2, ms_v2)
+                dm.set_junction(min(ms_v2, mc_v2), mc_v2, min(me_v2, mc_v2))
+        res = queue[:flush_count]
+        del queue[:flush_count]
+        return res
+
+    def _process(self, lazy: bool = False) -> None:
+        """``_process_lookahead``: flush and queue the finalized moves at the current print time."""
+        moves = self._flush_queue(lazy)
+        if not moves:
+            return
+        self.need_prime = False
+        t = self.print_time
+        out = self.out
+        n = self.n_out
+        for m in moves:
+            out.append(PlannedMove(n, m.lineno, MOVE if m.is_kin else EXTRUDE, t, m.start, m.end, m.move_d,
+                                   m.axes_r, m.start_v, m.cruise_v, m.end_v, m.accel, m.accel_t, m.cruise_t,
+                                   m.decel_t))
+            n += 1
+            t = t + m.accel_t + m.cruise_t + m.decel_t
+        self.n_out = n
+        if t > self.print_time:
+            self.print_time = t
+
+    def _flush_lookahead(self) -> None:
+        self._process()
+        self.need_prime = True
+        self.junction_flush = BUFFER_TIME_HIGH
+
+    def get_last_move_time(self) -> float:
+        if self.need_prime:
+            self._flush_lookahead()
+        else:
+            self._process()
+        return self.print_time
+
+    def dwell(self, delay_s: float, lineno: int) -> None:
+        t0 = self.get_last_move_time()
+        delay = max(0.0, delay_s)
+        if delay > 0.0:
+            p = tuple(self.commanded_pos)
+            self.out.append(PlannedMove(self.n_out, lineno, DWELL, t0, p, p, 0.0, (0.0, 0.0, 0.0, 0.0),
+                                        0.0, 0.0, 0.0, 0.0, 0.0, delay, 0.0))
+            self.n_out += 1
+        self.print_time = max(self.print_time, t0 + delay)
+
+    def sync(self, reason: str, lineno: int) -> None:
+        if reason in ("M84", "M18"):
+            self.dwell(MOTOR_OFF_DWELL_S, lineno)
+            self.get_last_move_time()
+            self.dwell(MOTOR_OFF_DWELL_S, lineno)
+        else:
+            self._flush_lookahead()
+
+    def home(self, position, lineno: int) -> None:
+        self._flush_lookahead()
+        self.commanded_pos = [position[0], position[1], position[2], self.commanded_pos[3]]
+        self.kin.set_position()
+
+    def finish(self) -> None:
+        self._flush_lookahead()
+
+    def take(self) -> list[PlannedMove]:
+        out = self.out
+        self.out = []
+        return out

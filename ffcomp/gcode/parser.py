@@ -1,0 +1,657 @@
+"""Streaming G-code parser: one :class:`~ffcomp.gcode.records.GcodeLine` per input line, in order.
+
+The parser is Klipper's ``gcode_move`` layer: it keeps the modal state (absolute/relative XYZ and E,
+G92 offsets, feed rate, M220 speed factor, M221 flow factor, arc plane, units) and turns every motion
+line into machine-coordinate moves the planner executes.  It never holds more than one line: iterate a
+file of any length in constant memory.
+
+Dialects (``dialect=`` keyword, normally the profile's planner name) differ where the firmware do:
+
+=================  =========================================  ======================================
+behaviour          ``"klipper"``                              ``"marlin"``
+=================  =========================================  ======================================
+G90 / G91          XYZ only; in G91 E is relative whatever    also set E absolute / relative (a later
+                   M82 says                                   M82 / M83 overrides, also in G91)
+G20 (inches)       error (Klipper rejects it)                 inch mode
+G2/G3 in G91       error (Klipper rejects it)                 relative target
+G4                 ``P`` milliseconds (``S`` ignored)         ``S`` seconds, else ``P`` milliseconds
+F <= 0             error ("Invalid speed")                    ignored
+=================  =========================================  ======================================
+
+Both accept G2/G3 in the I/J (I/K, J/K) and R forms and split arcs by Klipper's rule
+(:mod:`ffcomp.gcode.arcs`, ``arc_resolution_mm`` keyword, 1 mm default).
+
+A malformed motion/state line raises :class:`~ffcomp.errors.GcodeError` (path, line number, reason,
+text).  With ``lenient=True`` it is counted as a warning instead, its state changes are discarded and
+the line is passed through untouched (``op=None``, ``error`` set).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+from ..errors import GcodeError
+from .arcs import offset_from_radius, plan_arc
+from .records import (
+    ArcMove,
+    Dwell,
+    GcodeLine,
+    Home,
+    LimitsChange,
+    LinearMove,
+    ModeChange,
+    Sync,
+)
+from .words import classic_words, extended_params, lex, number
+
+__all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text"]
+
+_NUMCHARS = "0123456789.+-"
+_PLANES = {"XY": (0, 1, 2, "IJ"), "XZ": (0, 2, 1, "IK"), "YZ": (1, 2, 0, "JK")}
+
+
+def _dwell_klipper(p_ms, s_s):
+    return (p_ms or 0.0) / 1000.0
+
+
+def _dwell_marlin(p_ms, s_s):
+    if s_s is not None:
+        return s_s
+    return (p_ms or 0.0) / 1000.0
+
+
+@dataclass(frozen=True)
+class Dialect:
+    """How one firmware reads the modal G-code state (see the module docstring's table)."""
+
+    name: str
+    g90_sets_e_mode: bool
+    g91_forces_relative_e: bool
+    inches: bool
+    relative_arcs: bool
+    nonpositive_f_is_error: bool
+    dwell_seconds: Callable
+
+
+DIALECTS: dict[str, Dialect] = {
+    "klipper": Dialect("klipper", g90_sets_e_mode=False, g91_forces_relative_e=True, inches=False,
+                       relative_arcs=False, nonpositive_f_is_error=True, dwell_seconds=_dwell_klipper),
+    "marlin": Dialect("marlin", g90_sets_e_mode=True, g91_forces_relative_e=False, inches=True,
+                      relative_arcs=True, nonpositive_f_is_error=False, dwell_seconds=_dwell_marlin),
+}
+
+
+class _LineError(Exception):
+    """Internal: a line cannot be executed (becomes GcodeError or a lenient warning)."""
+
+
+def _fail(reason: str):
+    raise _LineError(reason)
+
+
+class GcodeParser:
+    """Iterate G-code lines as :class:`GcodeLine` records.
+
+    Parameters
+    ----------
+    lines : iterable of str
+        Lines with or without their terminators (a text file opened with ``newline=""`` keeps them).
+    path : str
+        Name used in error messages.
+    lenient : bool
+        Count malformed lines as warnings (passed through) instead of raising.
+    dialect : str
+        ``"klipper"`` or ``"marlin"`` (:data:`DIALECTS`).
+    arc_resolution_mm : float
+        Klipper ``[gcode_arcs] resolution``: nominal chord length of split arcs.
+    home_position_mm : (x, y, z)
+        Where G28 leaves the nozzle (a delta homes to the top of the towers).
+    start_position_mm : (x, y, z, e)
+        Machine position before the first line (the machine is assumed homed).
+    max_kept_warnings : int
+        How many warning messages :attr:`warning_messages` keeps (all are counted).
+
+    Attributes
+    ----------
+    lines_read : int
+    warnings : int
+    warning_messages : list of str
+    """
+
+    def __init__(
+        self,
+        lines: Iterable[str],
+        *,
+        path: str = "<gcode>",
+        lenient: bool = False,
+        dialect: str = "klipper",
+        arc_resolution_mm: float = 1.0,
+        home_position_mm: tuple = (0.0, 0.0, 0.0),
+        start_position_mm: tuple = (0.0, 0.0, 0.0, 0.0),
+        max_kept_warnings: int = 100,
+    ):
+        if dialect not in DIALECTS:
+            raise ValueError(f"unknown G-code dialect {dialect!r} (known: {', '.join(DIALECTS)})")
+        if not arc_resolution_mm > 0:
+            raise ValueError(f"arc_resolution_mm must be > 0, got {arc_resolution_mm}")
+        self._lines = lines
+        self.path = str(path)
+        self.lenient = lenient
+        self.dialect = DIALECTS[dialect]
+        self.arc_resolution_mm = float(arc_resolution_mm)
+        self.home_position_mm = tuple(float(v) for v in home_position_mm)
+        self.max_kept_warnings = max_kept_warnings
+        self.lines_read = 0
+        self.warnings = 0
+        self.warning_messages: list[str] = []
+        # modal state, as Klipper's gcode_move keeps it
+        sp = [float(v) for v in start_position_mm]
+        if len(sp) != 4:
+            raise ValueError("start_position_mm must have 4 values (x, y, z, e)")
+        self.last_position = sp
+        self.base_position = [0.0, 0.0, 0.0, 0.0]
+        self.homing_position = [0.0, 0.0, 0.0, 0.0]
+        self.absolute_coord = True
+        self.absolute_extrude = True
+        self.speed = 25.0  # mm/s (Klipper's and Marlin's start-up feed rate, F1500)
+        self.speed_factor = 1.0 / 60.0
+        self.extrude_factor = 1.0
+        self.unit = 1.0  # mm per G-code length unit (G20: 25.4)
+        self.plane = "XY"
+        self._handlers = {
+            "G0": self._g0, "G1": self._g1, "G2": self._g2, "G3": self._g3, "G4": self._g4,
+            "G17": self._g17, "G18": self._g18, "G19": self._g19, "G20": self._g20, "G21": self._g21,
+            "G28": self._g28, "G90": self._g90, "G91": self._g91, "G92": self._g92,
+            "M82": self._m82, "M83": self._m83, "M18": self._m84, "M84": self._m84, "M400": self._m400,
+            "M201": self._m201, "M203": self._m203, "M204": self._m204, "M205": self._m205,
+            "M220": self._m220, "M221": self._m221,
+            "SET_VELOCITY_LIMIT": self._set_velocity_limit, "SET_GCODE_OFFSET": self._set_gcode_offset,
+        }
+
+    # ------------------------------------------------------------------ iteration
+    def __iter__(self) -> Iterator[GcodeLine]:
+        handlers = self._handlers
+        path = self.path
+        lenient = self.lenient
+        lineno = 0
+        for raw in self._lines:
+            lineno += 1
+            self.lines_read = lineno
+            # fast path: plain "G1 ..." / "G0 ..." lines with no comment, checksum or compact words
+            if raw[:3] in ("G1 ", "G0 ") and ";" not in raw and "(" not in raw:
+                try:
+                    op = self._move(raw[3:].split(), raw[1] == "0")
+                except _LineError as e:
+                    yield self._bad(lineno, raw, "G" + raw[1], str(e))
+                    continue
+                yield GcodeLine(lineno, raw, "G" + raw[1], op)
+                continue
+            text = raw.rstrip("\r\n")
+            try:
+                cmd, params = lex(text)
+            except ValueError as e:
+                yield self._bad(lineno, raw, "", str(e))
+                continue
+            h = handlers.get(cmd)
+            if h is None:
+                yield GcodeLine(lineno, raw, cmd)
+                continue
+            snapshot = self._snapshot()
+            try:
+                op = h(params)
+            except (_LineError, ValueError) as e:
+                self._restore(snapshot)
+                if not lenient:
+                    raise GcodeError(path, lineno, str(e), text) from None
+                yield self._bad(lineno, raw, cmd, str(e))
+                continue
+            yield GcodeLine(lineno, raw, cmd, op)
+
+    def _bad(self, lineno: int, raw: str, cmd: str, reason: str) -> GcodeLine:
+        text = raw.rstrip("\r\n")
+        if not self.lenient:
+            raise GcodeError(self.path, lineno, reason, text)
+        self.warnings += 1
+        if len(self.warning_messages) < self.max_kept_warnings:
+            self.warning_messages.append(f"{self.path}:{lineno}: {reason}: {text.strip()!r}")
+        return GcodeLine(lineno, raw, cmd, None, reason)
+
+    def _snapshot(self):
+        return (list(self.last_position), list(self.base_position), list(self.homing_position),
+                self.absolute_coord, self.absolute_extrude, self.speed, self.speed_factor,
+                self.extrude_factor, self.unit, self.plane)
+
+    def _restore(self, s) -> None:
+        (self.last_position, self.base_position, self.homing_position, self.absolute_coord,
+         self.absolute_extrude, self.speed, self.speed_factor, self.extrude_factor, self.unit,
+         self.plane) = s
+
+    # ------------------------------------------------------------------ helpers
+    def _words(self, params, allowed: str, *, what: str) -> dict[str, float | None]:
+        """Parse classic words; letters outside ``allowed`` are an error; empty values give None."""
+        out: dict[str, float | None] = {}
+        try:
+            for letter, val in classic_words(params):
+                if letter not in allowed:
+                    _fail(f"unknown parameter '{letter}' for {what}")
+                out[letter] = number(letter, val) if val else None
+        except ValueError as e:
+            _fail(str(e))
+        for k, v in out.items():
+            if v is not None and not math.isfinite(v):
+                _fail(f"non-finite value for {k}")
+        return out
+
+    def _need(self, w: dict, letter: str, what: str) -> float | None:
+        if letter not in w:
+            return None
+        v = w[letter]
+        if v is None:
+            _fail(f"missing value for {letter} in {what}")
+        return v
+
+    def _set_speed(self, f: float) -> None:
+        if f <= 0.0:
+            if self.dialect.nonpositive_f_is_error:
+                _fail(f"invalid speed F{f:g}")
+            return
+        self.speed = f * self.unit * self.speed_factor
+
+    def _e_relative(self) -> bool:
+        """Whether E words are relative: Klipper also in G91; Marlin as M82/M83 (or G90/G91) last said."""
+        if not self.absolute_extrude:
+            return True
+        return not self.absolute_coord and self.dialect.g91_forces_relative_e
+
+    # ------------------------------------------------------------------ motion
+    def _move(self, tokens, rapid: bool):
+        """G0/G1 (hot path).  Mutates state only after the whole line parsed."""
+        vx = vy = vz = ve = vf = None
+        for t in tokens:
+            c = t[0]
+            v = t[1:]
+            if not v or v.strip(_NUMCHARS):
+                return self._move_slow(tokens, rapid)
+            try:
+                val = float(v)
+            except ValueError:
+                _fail(f"bad number {t!r}")
+            if val - val != 0.0:
+                _fail(f"non-finite value {t!r}")
+            if c == "X":
+                vx = val
+            elif c == "Y":
+                vy = val
+            elif c == "E":
+                ve = val
+            elif c == "F":
+                vf = val
+            elif c == "Z":
+                vz = val
+            elif "a" <= c <= "z":
+                return self._move_slow(tokens, rapid)
+            else:
+                _fail(f"unknown axis letter '{c}' in {t!r} (G0/G1 take X, Y, Z, E, F)")
+        return self._apply_move(vx, vy, vz, ve, vf, rapid)
+
+    def _move_slow(self, tokens, rapid: bool):
+        try:
+            words = classic_words([t.upper() for t in tokens])
+        except ValueError as e:
+            _fail(str(e))
+        vals: dict[str, float] = {}
+        for letter, val in words:
+            if letter not in "XYZEF":
+                _fail(f"unknown axis letter '{letter}' (G0/G1 take X, Y, Z, E, F)")
+            try:
+                vals[letter] = number(letter, val)
+            except ValueError as e:
+                _fail(str(e))
+            if not math.isfinite(vals[letter]):
+                _fail(f"non-finite value for {letter}")
+        return self._apply_move(vals.get("X"), vals.get("Y"), vals.get("Z"), vals.get("E"),
+                                vals.get("F"), rapid)
+
+    def _apply_move(self, vx, vy, vz, ve, vf, rapid: bool):
+        """Klipper's ``cmd_G1`` arithmetic (values finite, in G-code units)."""
+        lp = self.last_position
+        x0, y0, z0, e0 = lp
+        x, y, z, e = lp
+        u = self.unit
+        if u != 1.0:
+            vx = None if vx is None else vx * u
+            vy = None if vy is None else vy * u
+            vz = None if vz is None else vz * u
+            ve = None if ve is None else ve * u
+        bp = self.base_position
+        if self.absolute_coord:
+            if vx is not None:
+                x = vx + bp[0]
+            if vy is not None:
+                y = vy + bp[1]
+            if vz is not None:
+                z = vz + bp[2]
+        else:
+            if vx is not None:
+                x += vx
+            if vy is not None:
+                y += vy
+            if vz is not None:
+                z += vz
+        if ve is not None:
+            v = ve * self.extrude_factor
+            if self._e_relative():
+                e += v
+            else:
+                e = v + bp[3]
+        if vf is not None:
+            self._set_speed(vf)
+        self.last_position = [x, y, z, e]
+        if vx is None and vy is None and vz is None and ve is None:
+            return ModeChange("feedrate_mm_s", self.speed)
+        return LinearMove((x0, y0, z0, e0), (x, y, z, e), self.speed, rapid)
+
+    def _g0(self, params):
+        return self._move(params, True)
+
+    def _g1(self, params):
+        return self._move(params, False)
+
+    def _g2(self, params):
+        return self._arc(params, True)
+
+    def _g3(self, params):
+        return self._arc(params, False)
+
+    def _gcode_position(self) -> list[float]:
+        lp, bp = self.last_position, self.base_position
+        p = [lp[i] - bp[i] for i in range(4)]
+        p[3] /= self.extrude_factor
+        return p
+
+    def _chord(self, p, e_val, e_relative: bool) -> LinearMove:
+        """One arc chord: a G1 to absolute G-code coordinates ``p`` (what Klipper issues)."""
+        lp = self.last_position
+        bp = self.base_position
+        start = (lp[0], lp[1], lp[2], lp[3])
+        new = [p[0] + bp[0], p[1] + bp[1], p[2] + bp[2], lp[3]]
+        if e_val is not None:
+            v = e_val * self.extrude_factor
+            new[3] = lp[3] + v if e_relative else v + bp[3]
+        self.last_position = new
+        return LinearMove(start, (new[0], new[1], new[2], new[3]), self.speed, False)
+
+    def _arc(self, params, clockwise: bool):
+        w = self._words(params, "XYZEFIJKR", what="G2/G3")
+        for k in w:
+            self._need(w, k, "G2/G3")
+        u = self.unit
+        if not self.absolute_coord and not self.dialect.relative_arcs:
+            _fail("G2/G3 does not support relative move mode")
+        cur = self._gcode_position()
+        target = list(cur[:3])
+        for i, ax in enumerate("XYZ"):
+            if ax in w:
+                target[i] = w[ax] * u + (0.0 if self.absolute_coord else cur[i])
+        a, b, h, ij = _PLANES[self.plane]
+        if "R" in w and not (w.get(ij[0]) or w.get(ij[1])):
+            try:
+                off = offset_from_radius((cur[a], cur[b]), (target[a], target[b]), w["R"] * u, clockwise)
+            except ValueError as e:
+                _fail(str(e))
+        else:
+            off = (w.get(ij[0], 0.0) * u, w.get(ij[1], 0.0) * u)
+            if not (off[0] or off[1]):
+                _fail(f"G2/G3 needs a centre offset {ij[0]}/{ij[1]} or a radius R")
+        points, center, radius, angle = plan_arc(cur, target, off, clockwise, (a, b, h),
+                                                 self.arc_resolution_mm)
+        e_absolute = not self._e_relative()
+        e_per_move = e_base = 0.0
+        if "E" in w:
+            if e_absolute:
+                e_base = cur[3]
+            e_per_move = (w["E"] * u - e_base) / len(points)
+        if "F" in w:
+            self._set_speed(w["F"])
+        segs = []
+        for p in points:
+            ve = None
+            if e_per_move:
+                ve = e_base + e_per_move
+                if e_absolute:
+                    e_base += e_per_move
+            segs.append(self._chord(p, ve, not e_absolute))
+        bp = self.base_position
+        return ArcMove(tuple(segs), clockwise, (center[0] + bp[a], center[1] + bp[b]), radius, angle,
+                       self.plane)
+
+    # ------------------------------------------------------------------ other G codes
+    def _g4(self, params):
+        w = self._words(params, "PS", what="G4")
+        p = self._need(w, "P", "G4")
+        s = self._need(w, "S", "G4")
+        if (p is not None and p < 0) or (s is not None and s < 0):
+            _fail("negative dwell time")
+        return Dwell(float(self.dialect.dwell_seconds(p, s)))
+
+    def _g17(self, params):
+        self.plane = "XY"
+        return ModeChange("plane", "XY")
+
+    def _g18(self, params):
+        self.plane = "XZ"
+        return ModeChange("plane", "XZ")
+
+    def _g19(self, params):
+        self.plane = "YZ"
+        return ModeChange("plane", "YZ")
+
+    def _g20(self, params):
+        if not self.dialect.inches:
+            _fail("Machine does not support G20 (inches) command")
+        self.unit = 25.4
+        return ModeChange("units_mm_per_unit", 25.4)
+
+    def _g21(self, params):
+        self.unit = 1.0
+        return ModeChange("units_mm_per_unit", 1.0)
+
+    def _g28(self, params):
+        # a delta homes all towers whatever axes G28 names; its parameters are not checked
+        hp = self.home_position_mm
+        lp = self.last_position
+        self.last_position = [hp[0], hp[1], hp[2], lp[3]]
+        for i in range(3):
+            self.base_position[i] = self.homing_position[i]
+        return Home((hp[0], hp[1], hp[2], lp[3]))
+
+    def _g90(self, params):
+        self.absolute_coord = True
+        if self.dialect.g90_sets_e_mode:
+            self.absolute_extrude = True
+        return ModeChange("absolute_coord", True)
+
+    def _g91(self, params):
+        self.absolute_coord = False
+        if self.dialect.g90_sets_e_mode:
+            self.absolute_extrude = False
+        return ModeChange("absolute_coord", False)
+
+    def _g92(self, params):
+        w = self._words(params, "XYZE", what="G92")
+        offsets = [self._need(w, a, "G92") for a in "XYZE"]
+        if all(v is None for v in offsets):
+            self.base_position = list(self.last_position)
+        else:
+            for i, off in enumerate(offsets):
+                if off is None:
+                    continue
+                off *= self.unit
+                if i == 3:
+                    off *= self.extrude_factor
+                self.base_position[i] = self.last_position[i] - off
+        return ModeChange("set_position", tuple(offsets))
+
+    # ------------------------------------------------------------------ M codes
+    def _m82(self, params):
+        self.absolute_extrude = True
+        return ModeChange("absolute_extrude", True)
+
+    def _m83(self, params):
+        self.absolute_extrude = False
+        return ModeChange("absolute_extrude", False)
+
+    def _m84(self, params):
+        return Sync("M84")
+
+    def _m400(self, params):
+        return Sync("M400")
+
+    def _m220(self, params):
+        w = self._words(params, "SBRT", what="M220")
+        s = self._need(w, "S", "M220")
+        if s is None:
+            s = 100.0
+        if s <= 0:
+            _fail("M220 S must be above 0")
+        value = s / (60.0 * 100.0)
+        self.speed = (self.speed / self.speed_factor) * value
+        self.speed_factor = value
+        return ModeChange("speed_factor", s)
+
+    def _m221(self, params):
+        w = self._words(params, "SDT", what="M221")
+        s = self._need(w, "S", "M221")
+        if s is None:
+            s = 100.0
+        if s <= 0:
+            _fail("M221 S must be above 0")
+        new = s / 100.0
+        last_e = self.last_position[3]
+        e_value = (last_e - self.base_position[3]) / self.extrude_factor
+        self.base_position[3] = last_e - e_value * new
+        self.extrude_factor = new
+        return ModeChange("extrude_factor", s)
+
+    def _positive(self, w: dict, letter: str, what: str):
+        v = self._need(w, letter, what)
+        if v is not None and v <= 0:
+            _fail(f"{what} {letter} must be above 0")
+        return v
+
+    def _m204(self, params):
+        w = self._words(params, "SPTR", what="M204")
+        return LimitsChange("M204", accel_mm_s2=self._positive(w, "S", "M204"),
+                            print_accel_mm_s2=self._positive(w, "P", "M204"),
+                            travel_accel_mm_s2=self._positive(w, "T", "M204"),
+                            retract_accel_mm_s2=self._positive(w, "R", "M204"))
+
+    def _axes4(self, w: dict, what: str):
+        vals = tuple(self._positive(w, a, what) for a in "XYZE")
+        return vals if any(v is not None for v in vals) else None
+
+    def _m201(self, params):
+        w = self._words(params, "XYZET", what="M201")
+        return LimitsChange("M201", max_accel_axes_mm_s2=self._axes4(w, "M201"))
+
+    def _m203(self, params):
+        w = self._words(params, "XYZET", what="M203")
+        return LimitsChange("M203", max_feedrate_axes_mm_s=self._axes4(w, "M203"))
+
+    def _m205(self, params):
+        w = self._words(params, "XYZEJSTB", what="M205")
+        jerk = tuple(self._need(w, a, "M205") for a in "XYZE")
+        b = self._need(w, "B", "M205")
+        j = self._need(w, "J", "M205")
+        if j is not None and j <= 0:
+            _fail("M205 J must be above 0")
+        return LimitsChange("M205", junction_deviation_mm=j,
+                            jerk_mm_s=jerk if any(v is not None for v in jerk) else None,
+                            min_feedrate_mm_s=self._need(w, "S", "M205"),
+                            min_travel_feedrate_mm_s=self._need(w, "T", "M205"),
+                            min_segment_time_s=None if b is None else b * 1e-6)
+
+    # ------------------------------------------------------------------ Klipper extended commands
+    def _ext(self, params, allowed: tuple, what: str) -> dict[str, float]:
+        try:
+            p = extended_params(params)
+        except ValueError as e:
+            _fail(str(e))
+        out = {}
+        for k, v in p.items():
+            if k not in allowed:
+                _fail(f"unknown parameter '{k}' for {what}")
+            try:
+                x = float(v)
+            except ValueError:
+                _fail(f"bad number {k}={v!r}")
+            if not math.isfinite(x):
+                _fail(f"non-finite value for {k}")
+            out[k] = x
+        return out
+
+    def _set_velocity_limit(self, params):
+        p = self._ext(params, ("VELOCITY", "ACCEL", "SQUARE_CORNER_VELOCITY", "MINIMUM_CRUISE_RATIO",
+                               "ACCEL_TO_DECEL"), "SET_VELOCITY_LIMIT")
+        for k in ("VELOCITY", "ACCEL", "ACCEL_TO_DECEL"):
+            if k in p and p[k] <= 0:
+                _fail(f"SET_VELOCITY_LIMIT {k} must be above 0")
+        if p.get("SQUARE_CORNER_VELOCITY", 0.0) < 0:
+            _fail("SET_VELOCITY_LIMIT SQUARE_CORNER_VELOCITY must be >= 0")
+        mcr = p.get("MINIMUM_CRUISE_RATIO")
+        if mcr is not None and not (0.0 <= mcr < 1.0):
+            _fail("SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO must be in [0, 1)")
+        return LimitsChange("SET_VELOCITY_LIMIT", velocity_mm_s=p.get("VELOCITY"), accel_mm_s2=p.get("ACCEL"),
+                            accel_to_decel_mm_s2=p.get("ACCEL_TO_DECEL"),
+                            square_corner_velocity_mm_s=p.get("SQUARE_CORNER_VELOCITY"),
+                            minimum_cruise_ratio=mcr)
+
+    def _set_gcode_offset(self, params):
+        keys = ("X", "Y", "Z", "E", "X_ADJUST", "Y_ADJUST", "Z_ADJUST", "E_ADJUST")
+        try:
+            raw = extended_params(params)
+        except ValueError as e:
+            _fail(str(e))
+        if raw.get("MOVE", "0") not in ("0", ""):
+            _fail("SET_GCODE_OFFSET MOVE=1 is not supported")
+        raw.pop("MOVE", None)
+        raw.pop("MOVE_SPEED", None)
+        p = self._ext(" ".join(f"{k}={v}" for k, v in raw.items()), keys, "SET_GCODE_OFFSET")
+        for i, ax in enumerate("XYZE"):
+            off = p.get(ax)
+            if off is None:
+                adj = p.get(ax + "_ADJUST")
+                if adj is None:
+                    continue
+                off = adj + self.homing_position[i]
+            delta = off - self.homing_position[i]
+            self.base_position[i] += delta
+            self.homing_position[i] = off
+        return ModeChange("gcode_offset", tuple(self.homing_position))
+
+
+def _open_lines(path: Path) -> Iterator[str]:
+    with open(path, encoding="utf-8", errors="surrogateescape", newline="") as f:
+        yield from f
+
+
+def parse_gcode(source, **kw) -> GcodeParser:
+    """A :class:`GcodeParser` over a file path or an iterable of lines (see its keywords).
+
+    A ``str`` or ``PathLike`` is a file name (read lazily, line terminators kept); anything else is
+    iterated as lines.
+    """
+    if isinstance(source, (str, os.PathLike)):
+        kw.setdefault("path", str(source))
+        return GcodeParser(_open_lines(Path(source)), **kw)
+    return GcodeParser(source, **kw)
+
+
+def parse_text(text: str, **kw) -> list[GcodeLine]:
+    """Parse G-code held in a string (convenience for tests and small snippets)."""
+    kw.setdefault("path", "<string>")
+    return list(GcodeParser(text.splitlines(keepends=True), **kw))

@@ -1,0 +1,178 @@
+"""Motion planning: G-code records in, :class:`~ffcomp.gcode.moves.PlannedMove` out, firmware-exact.
+
+The firmware variants live in :data:`PLANNERS` (name -> planner class); the profile's
+``limits.planner`` picks one (``firmware=`` overrides it).  Every variant has the same interface:
+
+``move(end, speed_mm_s, line)``, ``dwell(seconds, lineno)``, ``sync(reason, lineno)``,
+``home(position, lineno)``, ``limits(op, line)``, ``finish()`` and ``take()`` (the moves finalized so
+far, in order).
+
+Planning streams: the lookahead queue holds only the moves that can still change (Klipper: about
+0.25-2 s of motion; Marlin: the block buffer), so memory does not grow with the file.
+
+>>> from ffcomp.profile import default_profile
+>>> moves = list(plan_gcode(["G1 X10 F6000\\n"], default_profile()))
+>>> round(moves[0].t_end_s, 6)
+0.11
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Iterator
+
+from .klipper import KlipperPlanner
+from .marlin import MarlinPlanner
+from .moves import PlannedMove
+from .parser import GcodeParser, parse_gcode
+from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Sync
+
+__all__ = ["PLANNERS", "plan_moves", "plan_gcode", "GcodePlan", "make_planner"]
+
+PLANNERS: dict[str, type] = {
+    "klipper": KlipperPlanner,
+    "marlin": MarlinPlanner,
+}
+
+
+def _linear(p, op: LinearMove, line: GcodeLine) -> None:
+    p.move(op.end, op.speed_mm_s, line)
+
+
+def _arc(p, op: ArcMove, line: GcodeLine) -> None:
+    for seg in op.segments:
+        p.move(seg.end, seg.speed_mm_s, line)
+
+
+def _dwell(p, op: Dwell, line: GcodeLine) -> None:
+    p.dwell(op.seconds, line.lineno)
+
+
+def _home(p, op: Home, line: GcodeLine) -> None:
+    p.home(op.position, line.lineno)
+
+
+def _sync(p, op: Sync, line: GcodeLine) -> None:
+    p.sync(op.reason, line.lineno)
+
+
+def _limits(p, op: LimitsChange, line: GcodeLine) -> None:
+    p.limits(op, line)
+
+
+def _nothing(p, op, line) -> None:
+    return None
+
+
+_OPS = {
+    LinearMove: _linear,
+    ArcMove: _arc,
+    Dwell: _dwell,
+    Home: _home,
+    Sync: _sync,
+    LimitsChange: _limits,
+    ModeChange: _nothing,
+}
+
+
+def make_planner(profile, *, firmware: str | None = None, **kw):
+    """Instantiate the planner variant for ``firmware`` (default: the profile's ``limits.planner``)."""
+    name = firmware or profile.limits.planner
+    try:
+        cls = PLANNERS[name]
+    except KeyError:
+        raise ValueError(f"unknown planner {name!r} (known: {', '.join(PLANNERS)})") from None
+    return cls(profile, **kw)
+
+
+def plan_moves(records: Iterable[GcodeLine], profile, *, firmware: str | None = None,
+               path: str = "<gcode>", **kw) -> Iterator[PlannedMove]:
+    """Plan parsed records; yields moves (and dwells) in execution order as they become final.
+
+    Parameters
+    ----------
+    records : iterable of GcodeLine
+        Usually a :class:`~ffcomp.gcode.parser.GcodeParser` with the same dialect.
+    profile : PrinterProfile
+    firmware : str, optional
+        Key of :data:`PLANNERS`; default ``profile.limits.planner``.
+    path : str
+        File name for error messages.
+    **kw
+        Passed to the planner class (e.g. ``max_extrude_only_distance_mm``, ``block_buffer_size``).
+    """
+    p = make_planner(profile, firmware=firmware, path=path, **kw)
+    ops = _OPS
+    for line in records:
+        op = line.op
+        if op is None:
+            continue
+        ops[type(op)](p, op, line)
+        if p.out:
+            yield from p.take()
+    p.finish()
+    yield from p.take()
+
+
+class GcodePlan:
+    """Parse and plan a G-code source in one stream; iterate it for :class:`PlannedMove` objects.
+
+    After iteration, :attr:`parser` holds the line and warning counts and :attr:`planner` the firmware
+    state (``print_time``, ``ignored_commands``).
+
+    Parameters
+    ----------
+    source : path or iterable of str
+    profile : PrinterProfile
+    lenient : bool
+        Malformed lines become counted warnings instead of errors.
+    firmware : str, optional
+        Planner (and G-code dialect) name; default ``profile.limits.planner``.
+    arc_resolution_mm : float
+        Klipper ``[gcode_arcs] resolution``.
+    start_position_mm : (x, y, z, e)
+        Position before the first line (the machine is assumed homed there).
+    path : str, optional
+        Name for error messages when ``source`` is not a file name.
+    **planner_kw
+        Passed to the planner class.
+    """
+
+    def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
+                 arc_resolution_mm: float = 1.0, start_position_mm=(0.0, 0.0, 0.0, 0.0),
+                 path: str | None = None, **planner_kw):
+        self.profile = profile
+        self.firmware = firmware or profile.limits.planner
+        if self.firmware not in PLANNERS:
+            raise ValueError(f"unknown planner {self.firmware!r} (known: {', '.join(PLANNERS)})")
+        pkw = {} if path is None else {"path": path}
+        self.parser: GcodeParser = parse_gcode(
+            source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
+            home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm)
+        self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
+                                    start_position_mm=start_position_mm, **planner_kw)
+        self._used = False
+
+    @property
+    def path(self) -> str:
+        return self.parser.path
+
+    def __iter__(self) -> Iterator[PlannedMove]:
+        if self._used:
+            raise RuntimeError("a GcodePlan can be iterated only once (it streams its source)")
+        self._used = True
+        p = self.planner
+        ops = _OPS
+        for line in self.parser:
+            op = line.op
+            if op is None:
+                continue
+            ops[type(op)](p, op, line)
+            if p.out:
+                yield from p.take()
+        p.finish()
+        yield from p.take()
+
+
+def plan_gcode(source, profile, **kw) -> GcodePlan:
+    """Parse + plan ``source`` (a path or lines); see :class:`GcodePlan` for the keywords."""
+    return GcodePlan(source, profile, **kw)

@@ -1,0 +1,1 @@
+"""Simulation: nonlinear plant, Klipper input shapers, tracking-error metrics, bench."""
