@@ -147,6 +147,17 @@ class _Predictor:
         return math.sqrt(self.sq / max(self.n, 1)) * 1e6
 
 
+def _refuse_compensated(path: str) -> None:
+    """Compensating a file twice would invert the model twice: refuse a file ffcomp wrote."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for i, line in enumerate(f, 1):
+            if line.startswith("; ffcomp ") and "feedforward vibration compensation" in line:
+                raise GcodeError(path, i, "this file is already compensated by ffcomp (compensate the "
+                                 "slicer's original instead)", line)
+            if i >= 5:
+                return
+
+
 def _count_lines(path: str) -> int:
     n = 0
     with open(path, "rb") as f:
@@ -170,6 +181,7 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
+    _refuse_compensated(src)
     total_lines = _count_lines(src)
     model = LpvModel.from_profile(profile)
     geom = model.geometry
