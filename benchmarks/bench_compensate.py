@@ -1,0 +1,118 @@
+"""Benchmark: compensation speed and memory on the big real-slicer file, and the accuracy/time
+trade-off of the inverse variants.
+
+Run: ``python benchmarks/bench_compensate.py [--file F] [--quick]``.  The big sample
+(samples/large/plate_prusa.gcode, ~244k lines, ~3.4 h of printing) is regenerated with PrusaSlicer
+if missing (``python samples/make_samples.py --large``).  One thread; prints a Markdown table.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+BIG = ROOT / "samples" / "large" / "plate_prusa.gcode"
+
+
+def run_file(path: Path, args: list[str]) -> dict:
+    """One compensation in a fresh process (so peak memory is its own)."""
+    out = Path("/tmp") / f"bench_out_{os.getpid()}.gcode"
+    cmd = [sys.executable, "-c",
+           "import resource, sys, json; from ffcomp.cli import main\n"
+           "try:\n    main(sys.argv[1:])\nexcept SystemExit as e:\n    code = e.code\n"
+           "print(json.dumps({'maxrss_kb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss}), file=sys.stderr)",
+           str(path), "-o", str(out), "--json", "--no-progress", *args]
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise SystemExit(f"compensation failed: {r.stderr[-2000:]}")
+    d = json.loads(r.stdout)
+    d["maxrss_mb"] = json.loads(r.stderr.strip().splitlines()[-1])["maxrss_kb"] / 1024
+    d["process_wall_s"] = wall
+    d["out_bytes"] = out.stat().st_size
+    out.unlink()
+    return d
+
+
+def variants_table() -> list[str]:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from trajectories import square, trapezoid_path
+
+    from ffcomp.compensate.inverse import METHODS, InverseConfig, invert
+    from ffcomp.compensate.predict import predict_lpv
+    from ffcomp.kinematics import inverse, jacobian
+    from ffcomp.model import LpvModel
+    from ffcomp.profile import default_profile
+
+    model = LpvModel.from_profile(default_profile())
+    rows = ["| variant | centre square RMS (um) | 100 mm square RMS (um) | time per print second (ms) |",
+            "|---|---|---|---|"]
+    paths = {}
+    for name, pts in (("c", square(0, 0)), ("o", square(100, 0, side=50))):
+        X = trapezoid_path(pts)
+        paths[name] = (X, inverse(model.geometry, X), jacobian(model.geometry, X))
+
+    def rms(X, q, J, qc):
+        e = np.einsum("nij,nj->ni", J, predict_lpv(model, qc, X, 1e-3) - q)
+        return float(np.sqrt(np.mean(np.sum(e**2, 1)))) * 1e6
+
+    base = {k: rms(X, q, J, q) for k, (X, q, J) in paths.items()}
+    rows.append(f"| none | {base['c']:.1f} | {base['o']:.1f} | - |")
+    for meth in METHODS:
+        res, tsum, dur = {}, 0.0, 0.0
+        for k, (X, q, J) in paths.items():
+            t0 = time.perf_counter()
+            r = invert(model, q, X, 1e-3, InverseConfig(method=meth))
+            tsum += time.perf_counter() - t0
+            dur += len(q) * 1e-3
+            res[k] = rms(X, q, J, r.q_cmd)
+        rows.append(f"| {meth} | {res['c']:.2f} | {res['o']:.2f} | {tsum / dur * 1e3:.1f} |")
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--file", type=Path, default=BIG)
+    ap.add_argument("--quick", action="store_true", help="first 20,000 lines of the file only")
+    a = ap.parse_args()
+    path = a.file
+    if not path.exists() and path == BIG:
+        subprocess.run([sys.executable, str(ROOT / "samples" / "make_samples.py"), "--large"], check=True)
+    if a.quick:
+        q = Path("/tmp/bench_quick.gcode")
+        with open(path) as f, open(q, "w") as g:
+            for i, ln in enumerate(f):
+                if i >= 20000:
+                    break
+                g.write(ln)
+        path = q
+    n_lines = sum(1 for _ in open(path))
+    print(f"file: {path} ({n_lines:,} lines)\n")
+    print("| run | print time | wall time | print/wall | peak RSS | predicted RMS before -> after | self-check max |")
+    print("|---|---|---|---|---|---|---|")
+    for label, args in (("full (predict + self-check)", []),
+                        ("no prediction, no self-check", ["--no-predict", "--no-self-check"])):
+        d = run_file(path, args)
+        pred = (f"{d['rms_before_um']:.1f} -> {d['rms_after_um']:.2f} um" if d.get("rms_before_um") else "-")
+        sc = f"{d['self_check_max_um']:.1f} um" if d.get("self_check_max_um") is not None else "-"
+        print(f"| {label} | {d['print_time_s'] / 3600:.2f} h | {d['wall_time_s']:.1f} s | "
+              f"{d['print_time_s'] / d['wall_time_s']:.0f}x | {d['maxrss_mb']:.0f} MB | {pred} | {sc} |")
+    print("\nInverse variants on 10,000 mm/s^2 squares (LPV model as judge):\n")
+    print("\n".join(variants_table()))
+
+
+if __name__ == "__main__":
+    main()
