@@ -205,11 +205,17 @@ def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
 
 
 class _DriveFilter:
-    """A tower's drive filter applied to a stream of samples (first-order hold, state carried)."""
+    """A tower's drive filter applied to a stream of samples (first-order hold, state carried).
 
-    def __init__(self, d0, d1, d2, lag_s, delay_s, dt_s):
+    ``derivative=True`` gives the drive velocity ``s F(s)`` instead of the drive position.
+    """
+
+    def __init__(self, d0, d1, d2, lag_s, delay_s, dt_s, derivative: bool = False):
         a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s)
-        ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], np.zeros((1, 1))), dt_s, method="foh")
+        d = np.zeros((1, 1))
+        if derivative:  # y' = c x' = c a x + c b u
+            c, d = c @ a, np.array([[c @ b]])
+        ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], d), dt_s, method="foh")
         num, den = ss2tf(ad, bd, cd, dd)
         self.b, self.a = num[0], den
         self.zi = None

@@ -216,40 +216,54 @@ class GcodeWriter:
         else:
             idx = adaptive_breakpoints(pts, self.tol)
         self.after_hold = False
-        w = self._w
-        for i, j in zip(idx[:-1], idx[1:]):
-            dt = (ks[j] - ks[i]) * self.dt
-            if dt <= 0:
-                continue
+        i, j = idx[:-1], idx[1:]
+        dt = (ks[j] - ks[i]) * self.dt
+        ok = dt > 0
+        i, j, dt = i[ok], j[ok], dt[ok]
+        if len(i):
             d = pts[j] - pts[i]
-            dist = float(np.sqrt(d @ d))
-            de_ref = es[j] - es[i]
-            self.e_ref_cum += de_ref
-            de = round(self.e_ref_cum - self.e_emitted, 5)
-            if dist < 1e-3:  # under a micrometre: the firmware would crawl; hold instead
-                if abs(de) > 1e-6:
-                    w(f"G1 E{de:.5f} F{max(abs(de) / dt, 1e-3) * 60:.1f}\n")
-                    self.e_emitted += de
-                else:
-                    w(f"G4 P{dt * 1000:.0f}\n")
-                self.stats.holds += 1
-                continue
+            dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+            # extrusion: the emitted total is the reference total rounded to 0.01 um, so the
+            # rounding never accumulates (each line gets the difference of consecutive rounded totals)
+            cum = self.e_ref_cum + np.cumsum(es[j] - es[i])
+            tot = np.round(cum, 5)
+            de = np.diff(np.concatenate([[self.e_emitted], tot]))
+            self.e_ref_cum = float(cum[-1])
+            self.e_emitted = float(tot[-1])
+            hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
             v = dist / dt
-            x, y, z = pts[j]
-            if abs(de) > 5e-6:
-                w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{de:.5f} F{v * 60:.2f}\n")
-                self.e_emitted += de
-                self.stats.extruded_mm += max(de, 0.0)
-            else:
-                w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{v * 60:.2f}\n")
-            self.stats.segments += 1
-            self.segments.extend((self.nlines, int(ks[i]), int(ks[j]), int(catch_up and i == 0)))
-            self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, v)
-            if self.prev_v is not None:
-                vv = d / dt
-                a = float(np.linalg.norm(vv - self.prev_v)) / max(dt, self.dt)
-                self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, a)
-            self.prev_v = d / dt
+            lines = []
+            seg_rows = []
+            n0 = self.nlines
+            for r in range(len(i)):
+                if hold[r]:
+                    if abs(de[r]) > 1e-9:
+                        lines.append(f"G1 E{de[r]:.5f} F{max(abs(de[r]) / dt[r], 1e-3) * 60:.1f}\n")
+                    else:
+                        lines.append(f"G4 P{dt[r] * 1000:.0f}\n")
+                    continue
+                x, y, z = pts[j[r]]
+                if abs(de[r]) > 1e-9:
+                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{de[r]:.5f} F{v[r] * 60:.2f}\n")
+                else:
+                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{v[r] * 60:.2f}\n")
+                seg_rows.append((n0 + len(lines), int(ks[i[r]]), int(ks[j[r]]), int(catch_up and i[r] == 0)))
+            self._write("".join(lines))
+            self.nlines += len(lines)
+            for row in seg_rows:
+                self.segments.extend(row)
+            self.stats.holds += int(hold.sum())
+            self.stats.segments += int((~hold).sum())
+            self.stats.extruded_mm += float(np.sum(np.maximum(de[~hold], 0.0)))
+            if (~hold).any():
+                vv = d[~hold] / dt[~hold][:, None]
+                self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[~hold].max()))
+                if self.prev_v is not None:
+                    vv = np.vstack([self.prev_v[None], vv])
+                if len(vv) > 1:
+                    acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[~hold][-len(vv) + 1:], self.dt)
+                    self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
+                self.prev_v = vv[-1]
         self.last_pt = pts[-1].copy()
         self.last_k = int(ks[-1])
         self.e_last_ref = float(es[-1])

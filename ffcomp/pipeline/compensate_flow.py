@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import __version__
 from ..compensate.inverse import InverseConfig
-from ..compensate.kernels import modal_foh  # noqa: F401  (re-exported for tests)
+from ..compensate.kernels import mech_arrays
 from ..compensate.ltv import simulate_piecewise
 from ..compensate.stream import StreamingInverse, carriage_derivatives
 from ..errors import GcodeError, SelfCheckError
@@ -30,7 +30,7 @@ from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
 from ..kinematics import forward, inverse, jacobian
-from ..model.lpv import LpvModel, state_space_arrays
+from ..model.lpv import LpvModel
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M"]
 
@@ -101,40 +101,54 @@ class CompensationSummary:
 
 
 class _Predictor:
-    """Running LPV prediction of the nozzle error of a command stream (piecewise-frozen model)."""
+    """Running LPV prediction of the nozzle error of a command stream.
+
+    The drive filters (LTI, per tower) run as recursive filters; the coupled mechanics run
+    piecewise frozen (pose updated every ``seg`` samples) with the drive position and velocity as
+    inputs.  Same model as :func:`ffcomp.compensate.predict.predict_lpv`, split where it is exact.
+    """
 
     def __init__(self, model: LpvModel, dt_s: float, seg: int = 100):
+        from ..compensate.stream import _DriveFilter
+
         self.model, self.dt, self.seg = model, dt_s, seg
-        self.x = None
-        self.w_last = None
+        mats = model.matrices(np.zeros((1, 3)) + [0, 0, model.geometry.z_min_m], check=False)
+        self._mk = lambda: [(_DriveFilter(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], dt_s),
+                             _DriveFilter(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], dt_s,
+                                          derivative=True)) for i in range(3)]
         self.sq = 0.0
         self.n = 0
         self.mx = 0.0
+        self.reset()
 
     def reset(self):
         self.x = None
         self.w_last = None
+        self.filters = self._mk()
 
     def push(self, q_cmd, q_ref, xyz_ref):
         if len(q_cmd) == 0:
             return
         if self.x is None:
             self.q0 = q_cmd[0].copy()
-            w = q_cmd - self.q0
-            prefix = 0
-        else:
-            w = np.concatenate([self.w_last, q_cmd - self.q0])
+        rel = q_cmd - self.q0
+        u = np.stack([f(rel[:, i]) for i, (f, _) in enumerate(self.filters)], 1)
+        ud = np.stack([g(rel[:, i]) for i, (_, g) in enumerate(self.filters)], 1)
+        w = np.hstack([u, ud])
+        prefix = 0
+        if self.x is not None:
+            w = np.concatenate([self.w_last, w])
             prefix = 1
         X = np.concatenate([xyz_ref[:1], xyz_ref]) if prefix else xyz_ref
         S = -(-len(w) // self.seg)
         idx = np.minimum(np.arange(S) * self.seg + self.seg // 2, len(X) - 1)
-        A, B, C, _ = state_space_arrays(self.model.matrices(X[idx], check=False))
+        A, B = mech_arrays(self.model.matrices(X[idx], check=False))
         if self.x is None:
-            self.x = np.zeros(A.shape[1])
+            self.x = np.zeros(6)
         xs, _ = simulate_piecewise(A, B, w, self.dt, self.seg, x0=self.x)
         self.x = xs[-1]
         self.w_last = w[-1:]
-        q = xs[prefix:] @ C[0].T + self.q0
+        q = xs[prefix:, :3] + self.q0
         J = jacobian(self.model.geometry, xyz_ref)
         e = np.einsum("nij,nj->ni", J, q - q_ref)
         en = np.sqrt(np.sum(e * e, 1))
