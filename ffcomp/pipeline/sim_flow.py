@@ -1,0 +1,209 @@
+"""Simulation flow: G-code or variants -> nonlinear simulator -> tracking-error metrics, plots, files.
+
+The only place that composes the simulation stages (G-code sampler, shapers, :mod:`ffcomp.sim.plant`,
+:mod:`ffcomp.sim.metrics`, :mod:`ffcomp.sim.bench`, :mod:`ffcomp.sim.measure`, the figures);
+the CLI calls one function per command and prints or writes what it returns.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..kinematics import inverse
+from ..sim import metrics, shapers
+from ..sim.moves import Trajectory, load_gcode_trajectory, longest_piece
+from ..sim.plant import DeltaPlant
+
+__all__ = ["load_gcode_trajectory", "longest_piece", "RunResult", "SimReport", "simulate_commands",
+           "simulate_gcode", "write_sim_plots", "bench_to_dir", "virtual_measure"]
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """One simulated command set scored against the reference.
+
+    Attributes
+    ----------
+    name : str
+    q_cmd_m, xyz_act_m : ndarray, shape (N, 3)
+        Commands applied (after quantisation) and actual nozzle positions ``forward(q)``, m.
+    report : metrics.ErrorReport
+    err_lag_m : ndarray, shape (N, 3)
+        Lag-aligned error, m.
+    contour_m : ndarray, shape (N,)
+        Contour error, m.
+    peak_hz, peak_um : float
+        Largest peak (above 5 Hz) of the lag-aligned error's amplitude spectrum, over the axes.
+    """
+
+    name: str
+    q_cmd_m: np.ndarray
+    xyz_act_m: np.ndarray
+    report: metrics.ErrorReport
+    err_lag_m: np.ndarray
+    contour_m: np.ndarray
+    peak_hz: float
+    peak_um: float
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "spectrum_peak_hz": self.peak_hz, "spectrum_peak_um": self.peak_um,
+                **self.report.to_dict()}
+
+
+@dataclass(frozen=True)
+class SimReport:
+    """Reference trajectory and the scored runs."""
+
+    reference: Trajectory
+    runs: tuple[RunResult, ...]
+    wall_s: float
+    quantized: bool
+
+    def to_dict(self) -> dict:
+        return {"reference": self.reference.name, "duration_s": self.reference.duration_s,
+                "samples": int(self.reference.t_s.shape[0]), "quantized": self.quantized,
+                "sim_wall_s": self.wall_s, "runs": [r.to_dict() for r in self.runs]}
+
+
+def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -> RunResult:
+    rep = metrics.evaluate(ref.t_s, ref.xyz_m, xyz_act)
+    err, _ = metrics.lag_aligned_error(ref.t_s, ref.xyz_m, xyz_act)
+    contour = metrics.contour_error(ref.xyz_m, xyz_act)
+    f, amp = metrics.error_spectrum(ref.t_s, err)
+    band = f >= 5.0
+    if band.any():
+        k, ax = np.unravel_index(np.argmax(amp[band]), amp[band].shape)
+        peak_hz, peak_um = float(f[band][k]), float(amp[band][k, ax] * 1e6)
+    else:
+        peak_hz = peak_um = float("nan")
+    return RunResult(name, q_cmd, xyz_act, rep, err, contour, peak_hz, peak_um)
+
+
+def simulate_commands(profile, ref: Trajectory, commands: dict[str, np.ndarray], *, quantize: bool = False,
+                      plant: DeltaPlant | None = None) -> SimReport:
+    """Simulate named carriage command sets (each (N, 3) on ``ref.t_s``) together and score them."""
+    import time
+
+    plant = plant or DeltaPlant.from_profile(profile)
+    names = list(commands)
+    cmds = np.stack([np.asarray(commands[n], float) for n in names])
+    t0 = time.perf_counter()
+    res = plant.simulate(ref.t_s, cmds, steps_per_mm=profile.limits.steps_per_mm if quantize else None)
+    wall = time.perf_counter() - t0
+    runs = tuple(_score(n, ref, res.q_cmd_m[k], res.xyz_m[k]) for k, n in enumerate(names))
+    return SimReport(ref, runs, wall, quantize)
+
+
+def _pad_to(a: np.ndarray, n: int) -> np.ndarray:
+    return a if a.shape[0] >= n else np.vstack([a, np.repeat(a[-1:], n - a.shape[0], axis=0)])
+
+
+def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, shape_z: bool = False,
+                   quantize: bool = False) -> SimReport:
+    """Simulate a G-code file as planned; optionally a second file and/or a Klipper shaper.
+
+    Parameters
+    ----------
+    path : path
+        G-code whose planned nozzle path is the reference (and the first run, ``planned``).
+    compare : path, optional
+        Another G-code (e.g. the compensated output) run on the printer and scored against the
+        *same* reference; the shorter record is extended at rest.
+    shaper : str, optional
+        ``"name@freq_hz"`` (e.g. ``"mzv@62"``): the reference shaped on X and Y as Klipper does.
+    shape_z : bool
+        Shape Z with the same shaper too (Klipper's optional ``shaper_type_z``).
+    quantize : bool
+        Round commands to whole steps (``limits.steps_per_mm``).
+    """
+    ref = load_gcode_trajectory(profile, path)
+    commands: dict[str, np.ndarray] = {"planned": ref.q_m}
+    if shaper:
+        name, f = shapers.parse_shaper_spec(shaper)
+        A, T = shapers.shaper_impulses(name, f)
+        xyz = shapers.shape_cartesian(ref.t_s, ref.xyz_m, (A, T), (A, T), (A, T) if shape_z else None)
+        commands[f"{name}@{f:g}{'+z' if shape_z else ''}"] = inverse(profile.geometry_si(), xyz)
+    if compare:
+        other = load_gcode_trajectory(profile, compare)
+        n = max(ref.t_s.shape[0], other.t_s.shape[0])
+        dt = float(ref.t_s[1] - ref.t_s[0])
+        ref = Trajectory(ref.name, np.arange(n) * dt, _pad_to(ref.xyz_m, n), _pad_to(ref.q_m, n))
+        commands = {k: _pad_to(v, n) for k, v in commands.items()}
+        label = Path(compare).name
+        commands[label if label not in commands else f"compare:{label}"] = _pad_to(other.q_m, n)
+    return simulate_commands(profile, ref, commands, quantize=quantize)
+
+
+def write_sim_plots(report: SimReport, prefix, *, print_radius_mm: float | None = None) -> list[Path]:
+    """``PREFIX_time.png`` (error over time) and ``PREFIX_bed.png`` (error over the bed)."""
+    from ..report.sim_plots import error_bed_png, error_time_png
+
+    prefix = str(prefix)
+    ref = report.reference
+    p1 = error_time_png(f"{prefix}_time.png", ref.t_s,
+                        [(r.name, r.err_lag_m, r.contour_m) for r in report.runs], title=ref.name)
+    p2 = error_bed_png(f"{prefix}_bed.png", ref.xyz_m, [(r.name, r.contour_m) for r in report.runs],
+                       title=ref.name, print_radius_mm=print_radius_mm)
+    return [p1, p2]
+
+
+def bench_to_dir(profile, out_dir, *, quick: bool = False, progress=None) -> tuple[object, list[Path]]:
+    """Run :func:`ffcomp.sim.bench.run_bench` and write ``bench.md``, ``bench.json`` and PNGs."""
+    from ..report.sim_plots import bench_bars_png, error_bed_png, error_time_png
+    from ..sim.bench import markdown_table, run_bench
+
+    res = run_bench(profile, quick=quick, progress=progress)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    files = [out / "bench.md", out / "bench.json"]
+    files[0].write_text(markdown_table(res), encoding="utf-8")
+    files[1].write_text(json.dumps(res.to_dict(), indent=1, default=float), encoding="utf-8")
+    names = [v["name"] for v in res.variants]
+    cases = [c.trajectory.name for c in res.cases]
+    vals = np.array([[c.reports[k].lag.rms_norm_um for c in res.cases] for k in range(len(names))])
+    files.append(bench_bars_png(out / "bench_rms.png", names, cases, vals))
+    # the hardest case (largest error without compensation): error over time and over the bed
+    k0 = names.index("none") if "none" in names else 0
+    hard = max(res.cases, key=lambda c: c.reports[k0].lag.rms_norm_um)
+    best = min(range(len(names)), key=lambda k: hard.reports[k].lag.rms_norm_um)
+    sel = sorted({k0, best})
+    ref = hard.trajectory
+    runs = []
+    for k in sel:
+        err, _ = metrics.lag_aligned_error(ref.t_s, ref.xyz_m, hard.xyz_act_m[k])
+        runs.append((names[k], err, metrics.contour_error(ref.xyz_m, hard.xyz_act_m[k])))
+    files.append(error_time_png(out / "bench_time.png", ref.t_s, runs, title=f"{ref.name} (hardest case)"))
+    # all cases of the 'none' row on one bed map
+    xyz = np.vstack([c.trajectory.xyz_m for c in res.cases])
+    cont = np.concatenate([metrics.contour_error(c.trajectory.xyz_m, c.xyz_act_m[k0]) for c in res.cases])
+    files.append(error_bed_png(out / "bench_bed.png", xyz, [(names[k0], cont)],
+                               title="contour error, all cases",
+                               print_radius_mm=profile.geometry.print_radius_mm))
+    return res, files
+
+
+def virtual_measure(profile, at_mm, input_: str, output: str, *, kind: str = "assembled", spec=None,
+                    out_path=None):
+    """Virtual FRF measurement on the nonlinear simulator (:func:`ffcomp.sim.measure.virtual_frf`).
+
+    Returns the :class:`~ffcomp.measure.frf_file.FrfMeasurement` and the model's prediction at its
+    frequencies (complex (F,)); writes the FRF file when ``out_path`` is given.
+    """
+    from ..measure.frf_file import save_frf
+    from ..model.lpv import AXES, frequency_response
+    from ..sim.measure import virtual_frf
+    from .model_flow import frame_for
+
+    plant = DeltaPlant.from_profile(profile)
+    meas = virtual_frf(plant, at_mm, input_, output, kind=kind, spec=spec)
+    model = plant.carriage_only().model if kind == "carriage" else plant.model
+    pos = np.asarray(at_mm, float)[None] * 1e-3
+    H = frequency_response(model, pos, meas.freq_hz, frame=frame_for(input_, output),
+                           delay="pade")[0, AXES[output], AXES[input_]]
+    if out_path is not None:
+        save_frf(meas, out_path)
+    return meas, H
