@@ -95,8 +95,11 @@ class GcodeWriter:
     """
 
     def __init__(self, lines: Iterator[GcodeLine], out: IO[str], dt_s: float, tol_mm: float,
-                 moves: dict[int, PlannedMove]):
+                 moves: dict[int, PlannedMove], accel_mm_s2: float = float("inf"),
+                 max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf")):
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
+        self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
+        self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
         self.moves = moves
         self.stats = WriterStats()
         self.next_line: GcodeLine | None = None
@@ -186,6 +189,7 @@ class GcodeWriter:
                 self.done_moves = {k for k in self.done_moves if k >= mi - 2}
 
     def _hold(self, k_end: int, e_ref_end: float) -> None:
+        self.f_last = 0.0  # the firmware stops for extruder-only moves and dwells
         self.last_k = k_end
         self.e_last_ref = e_ref_end
         self.after_hold = True
@@ -221,6 +225,8 @@ class GcodeWriter:
         ok = dt > 0
         i, j, dt = i[ok], j[ok], dt[ok]
         if len(i):
+            # the firmware sees the printed (rounded) coordinates: durations must come from those
+            pts = np.round(pts, 4)
             d = pts[j] - pts[i]
             dist = np.sqrt(np.einsum("ij,ij->i", d, d))
             # extrusion: the emitted total is the reference total rounded to 0.01 um, so the
@@ -231,7 +237,7 @@ class GcodeWriter:
             self.e_ref_cum = float(cum[-1])
             self.e_emitted = float(tot[-1])
             hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
-            v = dist / dt
+            v = self._firmware_feeds(d, dist, dt, hold)
             lines = []
             seg_rows = []
             n0 = self.nlines
@@ -244,9 +250,9 @@ class GcodeWriter:
                     continue
                 x, y, z = pts[j[r]]
                 if abs(de[r]) > 1e-9:
-                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{de[r]:.5f} F{v[r] * 60:.2f}\n")
+                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{de[r]:.5f} F{v[r] * 60:.3f}\n")
                 else:
-                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{v[r] * 60:.2f}\n")
+                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{v[r] * 60:.3f}\n")
                 seg_rows.append((n0 + len(lines), int(ks[i[r]]), int(ks[j[r]]), int(catch_up and i[r] == 0)))
             self._write("".join(lines))
             self.nlines += len(lines)
@@ -267,6 +273,36 @@ class GcodeWriter:
         self.last_pt = pts[-1].copy()
         self.last_k = int(ks[-1])
         self.e_last_ref = float(es[-1])
+
+    def _firmware_feeds(self, d, dist, dt, hold) -> np.ndarray:
+        """Feed rates that make the firmware's trapezoids last the intended durations.
+
+        A segment cruises at its F, but the firmware enters it at the junction speed
+        ``min(F_prev, F)`` and leaves at ``min(F, F_next)``, ramping at its acceleration limit
+        (the header's ACCEL, or Klipper's delta limit ``max_z_accel * d / |dz|`` on segments with z
+        travel).  Solving ``d = F T - (F - v_in)^2 / 2a - (F - v_out)^2 / 2a`` for F, a few sweeps
+        over the run, removes the time those ramps would add (a slow drift otherwise).
+        """
+        v = dist / dt
+        dz = np.abs(d[:, 2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(dz > 0, dist / np.maximum(dz, 1e-12), np.inf)
+        a = np.minimum(self.accel, self.max_z_accel * ratio)
+        if not np.all(np.isfinite(a)) or len(v) == 0:
+            return v
+        F = v.copy()
+        for _ in range(4):
+            prev = np.concatenate([[self.f_last], F[:-1]])
+            prev = np.where(np.concatenate([[False], hold[:-1]]), 0.0, prev)
+            nxt = np.concatenate([F[1:], [F[-1]]])
+            vin = np.minimum(prev, F)
+            vout = np.minimum(nxt, F)
+            b = vin + vout + a * dt
+            disc = b * b - 2.0 * (vin * vin + vout * vout + 2.0 * a * dist)
+            Fn = np.where(disc > 0, 0.5 * (b - np.sqrt(np.maximum(disc, 0.0))), v)
+            F = np.where(hold, v, np.maximum(Fn, v))
+        self.f_last = float(F[~hold][-1]) if (~hold).any() else 0.0
+        return F
 
     def finish(self) -> None:
         self.flush_lines(1 << 62)

@@ -50,9 +50,12 @@ class CompensateOptions:
     self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres
     predict : predict the residual vibration before/after with the LPV model for the summary
     lenient : malformed G-code lines become counted warnings
-    accel_factor : the header's ACCEL is this times the compensated path's peak acceleration
+    accel_factor : the header's ACCEL is this times the profile's max_accel (at least 100,000 mm/s^2):
+        the segments carry the timing, so the firmware should change speed between them at once
     pin_holds : keep the command on the reference while the plan holds the nozzle still (extruder-only
         moves, dwells): a G-code file cannot move the nozzle during those lines
+    corner_velocity_mm_s : the SQUARE_CORNER_VELOCITY the header sets: the compensated path already
+        slows where the plan slows, so the firmware must not slow it again at every small turn
     """
 
     method: str = "lpv"
@@ -62,8 +65,9 @@ class CompensateOptions:
     self_check_tol_um: float = 50.0
     predict: bool = True
     lenient: bool = False
-    accel_factor: float = 4.0
+    accel_factor: float = 20.0
     pin_holds: bool = False
+    corner_velocity_mm_s: float = 100.0
     block_len: int = 4096
     inverse: InverseConfig = field(default_factory=InverseConfig)
 
@@ -93,6 +97,7 @@ class CompensationSummary:
     header_accel_mm_s2: float = 0.0
     restarts: int = 0
     clamped: int = 0
+    peak_command_accel_mm_s2: float = 0.0
     warnings: int = 0
     notes: list = field(default_factory=list)
 
@@ -214,7 +219,10 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
         with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf:
             lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
                                      home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm)))
-            writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves)
+            accel = header_accel(profile, opts)
+            writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
+                                 max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
+                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s)
             pred_before = _Predictor(model, dt) if opts.predict else None
             pred_after = _Predictor(model, dt) if opts.predict else None
             k_written = 0
@@ -279,9 +287,8 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
             summ.rms_before_um, summ.max_before_um = pred_before.rms_um, pred_before.mx * 1e6
             summ.rms_after_um, summ.max_after_um = pred_after.rms_um, pred_after.mx * 1e6
         # header with the firmware settings this file needs, then the body
-        accel = max(profile.limits.max_accel_mm_s2, opts.accel_factor * a_peak * 1e3)
-        accel = float(math.ceil(accel / 100.0) * 100.0)
         summ.header_accel_mm_s2 = accel
+        summ.peak_command_accel_mm_s2 = a_peak * 1e3
         head, foot = _header(profile, opts, src, accel, writer.stats)
         final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
         n_out = 0
@@ -448,6 +455,11 @@ class _Fifo:
         return out
 
 
+def header_accel(profile, opts: CompensateOptions) -> float:
+    """The ACCEL the output sets (and the writer's timing assumes), mm/s^2."""
+    return float(max(1e5, opts.accel_factor * profile.limits.max_accel_mm_s2))
+
+
 def _header(profile, opts: CompensateOptions, src: str, accel: float, stats) -> tuple[list[str], list[str]]:
     lim = profile.limits
     settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
@@ -466,7 +478,7 @@ def _header(profile, opts: CompensateOptions, src: str, accel: float, stats) -> 
             f"; requires [printer] max_z_accel >= {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
             f"max_z_velocity >= {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
             f"SET_VELOCITY_LIMIT ACCEL={accel:.0f} MINIMUM_CRUISE_RATIO=0 "
-            f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g}",
+            f"SQUARE_CORNER_VELOCITY={opts.corner_velocity_mm_s:g}",
         ]
         foot = [f"SET_VELOCITY_LIMIT ACCEL={lim.max_accel_mm_s2:g} MINIMUM_CRUISE_RATIO={lim.minimum_cruise_ratio:g} "
                 f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g} ; ffcomp: restore the profile's limits"]

@@ -55,9 +55,10 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     n0 = None
     k = 0
     qs = []
+    last = None
     for qc, _meta in compensated_stream(plan, {}, profile, model, icfg, opts, summ_c, src):
         # keep one sample of overlap so crossings between chunks are found
-        block = qc if k == 0 else np.vstack([last, qc])
+        block = qc if last is None else np.vstack([last, qc])
         t_start = (k - (0 if k == 0 else 1)) * dt
         starts = []
         for i, name in enumerate(STEPPERS):
