@@ -47,3 +47,24 @@ def test_gcode_output_keeps_90_percent_of_the_ideal_reduction(square_file, profi
     assert (c_none - c_gco) >= 0.9 * (c_none - c_ide), (c_none, c_ide, c_gco)
     assert reps[1].lag_s < 0.25e-3  # the command lag is gone (uncompensated: ~2.6 ms)
     assert reps[0].lag_s > 2e-3
+
+
+def test_bench_criteria_on_the_simulator(profile):
+    """Issue 5's bench criteria, deterministic, on the quick bench cases (the README has the full bench)."""
+    from ffcomp.sim.bench import run_bench
+
+    shapers = ["zv-centre", "mzv-centre", "zvd-centre", "ei-centre"]
+    res = run_bench(profile, quick=True, variants=["none", *shapers, "lti-centre", "lpv"])
+    names = [v["name"] for v in res.variants]
+    for case in res.cases:
+        rep = dict(zip(names, case.reports))
+        none, lpv, lti = rep["none"], rep["lpv"], rep["lti-centre"]
+        assert lpv.lag.rms_norm_um < 0.05 * none.lag.rms_norm_um, case.trajectory.name
+        assert lpv.contour.rms_norm_um < 0.05 * none.contour.rms_norm_um, case.trajectory.name
+        assert abs(lpv.lag_s) < 0.3e-3  # the command lag is gone
+        for s in shapers:  # beats every centre-tuned shaper, RMS and max, without adding contour error
+            assert lpv.lag.rms_norm_um < rep[s].lag.rms_norm_um and lpv.lag.max_norm_um < rep[s].lag.max_norm_um
+            assert lpv.contour.rms_norm_um < rep[s].contour.rms_norm_um
+        x, y = case.trajectory.name.split("@(")[1].split(",")[:2]
+        if np.hypot(float(x), float(y)) >= 100:
+            assert lpv.lag.rms_norm_um <= 0.2 * lti.lag.rms_norm_um, case.trajectory.name

@@ -13,7 +13,7 @@ import sys
 for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
-from .common import app, run_app
+from .common import app, run_app  # noqa: E402  (after the thread settings)
 
 # command modules register themselves on ``app`` when imported
 _COMMAND_MODULES = ("compensate_cmd", "model_cmds", "identify_cmd", "plan_cmd", "profile_cmds", "validate_cmds",

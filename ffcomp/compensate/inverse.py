@@ -68,7 +68,7 @@ class InverseConfig:
 
     method: str = "lpv"
     degree: int = 5
-    knot_samples: int = 5
+    knot_samples: int = 4
     window_s: float = 0.80
     advance_s: float = 0.60
     drive_window_s: float = 1.00

@@ -44,6 +44,6 @@ class FfcompPostProcessing(Script):
             with open(path) as f:
                 return [f.read()]
         except subprocess.CalledProcessError as e:
-            raise RuntimeError("ffcomp failed: " + (e.stderr or str(e)))
+            raise RuntimeError("ffcomp failed: " + (e.stderr or str(e))) from e
         finally:
             os.unlink(path)

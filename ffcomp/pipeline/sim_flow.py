@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..kinematics import inverse
-from ..sim import metrics, shapers
+from ..sim import bench, metrics, shapers
 from ..sim.moves import Trajectory, load_gcode_trajectory, longest_piece
 from ..sim.plant import DeltaPlant
 
@@ -92,7 +92,8 @@ def simulate_commands(profile, ref: Trajectory, commands: dict[str, np.ndarray],
     names = list(commands)
     cmds = np.stack([np.asarray(commands[n], float) for n in names])
     t0 = time.perf_counter()
-    res = plant.simulate(ref.t_s, cmds, steps_per_mm=profile.limits.steps_per_mm if quantize else None)
+    res = plant.simulate(ref.t_s, cmds, steps_per_mm=profile.limits.steps_per_mm if quantize else None,
+                         hold=bench.HOLD)
     wall = time.perf_counter() - t0
     runs = tuple(_score(n, ref, res.q_cmd_m[k], res.xyz_m[k]) for k, n in enumerate(names))
     return SimReport(ref, runs, wall, quantize)

@@ -41,6 +41,11 @@ __all__ = ["VARIANTS", "PROVIDERS", "load_providers", "VariantFn", "register_var
 
 VariantFn = Callable[[object, np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
+#: How the plant sees the 1 kHz command samples: the firmware moves linearly between the points of a
+#: G-code file, and a step stream steps at exact times, so commands are interpolated linearly
+#: (``"zoh"`` would add half a sample of delay and a 1 kHz staircase to every row).
+HOLD = "linear"
+
 #: name -> fn(profile, t_s, xyz_ref_m, q_ref_m) -> q_cmd_m; the bench's rows, in order
 VARIANTS: dict[str, VariantFn] = {}
 
@@ -289,7 +294,7 @@ def run_case(plant: DeltaPlant, profile, traj: Trajectory, names, *, quantize: b
     cmds = np.stack([np.asarray(VARIANTS[n](profile, traj.t_s, traj.xyz_m, traj.q_m), float) for n in names])
     spm = profile.limits.steps_per_mm if quantize else None
     t0 = time.perf_counter()
-    res = plant.simulate(traj.t_s, cmds, steps_per_mm=spm)
+    res = plant.simulate(traj.t_s, cmds, steps_per_mm=spm, hold=HOLD)
     wall = time.perf_counter() - t0
     reports = tuple(metrics.evaluate(traj.t_s, traj.xyz_m, res.xyz_m[k]) for k in range(len(names)))
     return CaseResult(traj, tuple(names), res.xyz_m, reports, wall)
