@@ -498,7 +498,7 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     shape (tolerance, firmware acceleration ramps) and the timing inside each segment; the drift of
     the whole file's duration is reported separately (``output_print_time_s``).
     """
-    intended = np.memmap(qfile, dtype=np.float32, mode="r").reshape(-1, 3)
+    qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
     # the writer's segment table: body line, first and last sample, catch-up flag (4 ints a row)
     tab = np.frombuffer(segments, dtype=np.int64).reshape(-1, 4) if segments is not None and len(segments) \
         else np.zeros((0, 4), np.int64)
@@ -521,7 +521,10 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         K = np.concatenate(batch_k)
         CU = np.concatenate(batch_cu)
         q = inverse(geom, P)
-        d = np.max(np.abs(q - intended[K].astype(float)), axis=1)
+        k0, k1 = int(K.min()), int(K.max()) + 1
+        qf.seek(k0 * 12)
+        win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
+        d = np.max(np.abs(q - win[K - k0].astype(float)), axis=1)
         if CU.any():
             worst_cu = max(worst_cu, float(np.max(d[CU])))
             d = np.where(CU, 0.0, d)
@@ -568,6 +571,7 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         if len(rows) >= 20000:
             flush_moves()
     flush_moves()
+    qf.close()
     summ.output_print_time_s = t_end
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
