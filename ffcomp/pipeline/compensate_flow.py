@@ -414,15 +414,28 @@ def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
     return out
 
 
-def _clamp_to_workspace(xyz: np.ndarray, geom) -> np.ndarray:
-    """Clamp nozzle positions (m) into the z range and print radius in place; returns the mask."""
+def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:
+    """Clamp nozzle positions (m) in place into what Klipper's delta ``check_move`` accepts: the z
+    range, the print radius, and the cone above ``limit_z`` where the radius shrinks to zero at the
+    top (a command that pre-actuates away from the homed position would poke out of it).  Returns
+    the mask of clamped rows.  ``margin_m`` keeps the printed (rounded) coordinates inside."""
     z = xyz[:, 2]
-    bad = (z > geom.z_max_m) | (z < geom.z_min_m)
-    np.clip(z, geom.z_min_m, geom.z_max_m, out=z)
+    bad = (z > geom.z_max_m - margin_m) | (z < geom.z_min_m)
+    np.clip(z, geom.z_min_m, geom.z_max_m - margin_m, out=z)
+    R = float(np.max(geom.delta_radius_m))
+    L = float(np.min(geom.arm_length_m))
+    limit_z = geom.z_max_m + np.sqrt(L * L - R * R) - L
+    allowed = np.full(len(z), geom.print_radius_m)
+    above = z - limit_z
+    top = above > 0
+    if top.any():
+        allowed[top] = np.minimum(allowed[top], R - np.sqrt(np.maximum(L * L - (L - above[top]) ** 2, 0.0)))
+    allowed = np.maximum(allowed - margin_m, 0.0)
     r = np.hypot(xyz[:, 0], xyz[:, 1])
-    far = r > geom.print_radius_m
+    far = r > allowed
     if far.any():
-        xyz[far, :2] *= (geom.print_radius_m / r[far])[:, None]
+        scale = np.where(r[far] > 0, allowed[far] / np.maximum(r[far], 1e-300), 0.0)
+        xyz[far, :2] *= scale[:, None]
     return bad | far
 
 
