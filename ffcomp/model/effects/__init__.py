@@ -51,6 +51,8 @@ class Effect:
     fit: ClassVar[tuple[str, ...]] = ()
     #: one-line description (the physics) for listings
     summary: ClassVar[str] = ""
+    #: start a fit from a grid over the search ranges (False: from the defaults, e.g. scale factors at 1)
+    grid: ClassVar[bool] = True
 
     @classmethod
     def fit_params(cls) -> tuple[str, ...]:

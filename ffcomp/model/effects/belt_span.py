@@ -27,7 +27,8 @@ the towers the nozzle approaches rise, the others fall).
 Parameters
 ----------
 l1_ref_mm : lower-span length (carriage clamp to motor pulley) at the identification height, mm.
-loop_mm : ``l1 + l2``: twice the pulley-to-idler distance, mm (fixed by the frame; not fitted).
+loop_mm : ``l1 + l2``: twice the pulley-to-idler distance, mm (fixed by the frame; fitted too,
+    or set it with ``ffcomp fit --set belt_span:loop_mm=...`` if you measured it).
 z_ref_mm : nozzle height of the identification sweep at the bed centre, mm (not fitted).
 """
 
@@ -52,16 +53,19 @@ def stiffness_ratio(q_m, q_ref_m, l1_ref_m: float, loop_m: float) -> np.ndarray:
 
 @register
 class BeltSpan(Effect):
+    """Belt stiffness ``k(q) = EA/l1 + EA/l2`` relative to the identification height (see module)."""
+
     name = "belt_span"
     summary = "belt stiffness EA/l1 + EA/l2 varies with carriage height (two spans in parallel)"
     params = {
         "l1_ref_mm": Param(400.0, "mm", 10.0, 5000.0,
                            "lower-span length (carriage to motor pulley) at the identification height",
                            search=(100.0, 1200.0)),
-        "loop_mm": Param(1500.0, "mm", 100.0, 10000.0, "l1 + l2: twice the motor-pulley-to-idler distance"),
+        "loop_mm": Param(1500.0, "mm", 100.0, 10000.0, "l1 + l2: twice the motor-pulley-to-idler distance",
+                         search=(500.0, 4000.0)),
         "z_ref_mm": Param(30.0, "mm", -1000.0, 1000.0, "nozzle height of the identification sweep (bed centre)"),
     }
-    fit = ("l1_ref_mm",)
+    fit = ("l1_ref_mm", "loop_mm")
     evidence_keys = ("height", "height_shift")
 
     def __init__(self, **values):
@@ -75,10 +79,12 @@ class BeltSpan(Effect):
         return inverse(model.geometry, np.array([0.0, 0.0, self.values["z_ref_mm"] * 1e-3]))
 
     def ratio(self, q_m, model) -> np.ndarray:
+        """``k(q) / k(q_ref)`` for carriage heights ``q_m`` (m), shape like ``q_m`` (P, 3)."""
         return stiffness_ratio(q_m, self.q_ref(model)[None, :], self.values["l1_ref_mm"] * 1e-3,
                                self.values["loop_mm"] * 1e-3)
 
     def apply(self, mats, model):
+        """Scale each belt's stiffness (``K`` diagonal, ``B_k``) and damping (``C``, ``B_c``) by ``k(q)/k(q_ref)``."""
         r = self.ratio(mats.q_m, model)  # (P, 3)
         K, C = mats.K.copy(), mats.C.copy()
         i = np.arange(3)
@@ -87,6 +93,7 @@ class BeltSpan(Effect):
         return mats.replace(K=K, C=C, B_k=mats.B_k * r, B_c=mats.B_c * r)
 
     def explain(self, model) -> str:
+        """The span geometry and the stiffness ratio at the bottom and top of the z range."""
         g = model.geometry
         z = np.linspace(max(g.z_min_m, 0.0), g.z_max_m, 7)
         q = inverse(g, np.column_stack([np.zeros_like(z), np.zeros_like(z), z]))[:, 0]

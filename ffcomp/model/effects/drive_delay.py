@@ -37,6 +37,8 @@ __all__ = ["DriveDelay"]
 
 @register
 class DriveDelay(Effect):
+    """Extra delay and first-order lag of every drive (``delay_s``, ``lag_s``; see module)."""
+
     name = "drive_delay"
     summary = "extra drive delay exp(-s tau) and/or first-order lag 1/(1 + s tau) on every tower"
     params = {
@@ -47,6 +49,7 @@ class DriveDelay(Effect):
     evidence_keys = ("delay", "lag")
 
     def apply(self, mats, model):
+        """Add ``delay_ms`` to ``delay_s`` and ``lag_ms`` to ``lag_s`` of every tower."""
         d, lag = self.values["delay_ms"] * 1e-3, self.values["lag_ms"] * 1e-3
         if d == 0 and lag == 0:
             return mats
@@ -54,6 +57,7 @@ class DriveDelay(Effect):
         return mats.replace(delay_s=mats.delay_s + d, lag_s=mats.lag_s + lag)
 
     def explain(self, model) -> str:
+        """Delay and lag with the phase lag they add at 100 Hz."""
         d, lag = self.values["delay_ms"], self.values["lag_ms"]
         f = 100.0
         ph = 360 * f * d * 1e-3 + np.degrees(np.arctan(2 * np.pi * f * lag * 1e-3))

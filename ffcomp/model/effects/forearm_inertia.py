@@ -26,9 +26,9 @@ multiplies the uniform-rod correction, ``scale = 1.5 (1 - 4 I / (m l^2))``: 1 fo
 Signature in the FRFs
 ---------------------
 Nothing changes for a pure vertical move at the bed centre (all rod ends move together) nor for
-the carriage sweep (forearms detached); lateral modes have less mass than the model says, so the
-x and y resonances are a few percent high everywhere, more where the arms are steep (large
-``|va - vb|`` per unit effector motion).
+the carriage sweep (forearms detached: a model with ``m_nt = 0`` gets no correction); lateral
+modes have less mass than the model says, so the x and y resonances are a few percent high
+everywhere, more where the arms are steep (large ``|va - vb|`` per unit effector motion).
 
 Parameters
 ----------
@@ -65,6 +65,8 @@ def mass_correction(J: np.ndarray, m_f: float) -> np.ndarray:
 
 @register
 class ForearmInertia(Effect):
+    """Uniform-rod forearms: joint-space mass correction ``scale * dM(J)`` (see module)."""
+
     name = "forearm_inertia"
     summary = "forearms as uniform rods (rotational inertia) instead of masses split between the ends"
     params = {
@@ -75,11 +77,14 @@ class ForearmInertia(Effect):
     evidence_keys = ("common_vs_lateral", "peak_shift")
 
     def apply(self, mats, model):
-        if model.m_f <= 0 or self.values["scale"] == 0:
+        """Add ``scale * mass_correction(J, m_f)`` to ``M`` (nothing without an effector)."""
+        # no effector (m_nt = 0: the carriage sweep, forearms detached) means no rods between carriage and effector
+        if model.m_f <= 0 or model.m_nt <= 0 or self.values["scale"] == 0:
             return mats
         return mats.replace(M=mats.M + self.values["scale"] * mass_correction(mats.J, model.m_f))
 
     def explain(self, model) -> str:
+        """The scale as a rod inertia about its centre, compared with uniform rods and point masses."""
         s = self.values["scale"]
         rho = 1.0 - s / 1.5  # 4 I / (m l^2)
         return (f"scale {s:.3f} of the uniform-rod correction (rod inertia about its centre "

@@ -43,6 +43,8 @@ LAPLACIAN = np.array([[2.0, -1.0, -1.0], [-1.0, 2.0, -1.0], [-1.0, -1.0, 2.0]])
 
 @register
 class FrameCoupling(Effect):
+    """A spring ``k_c = coupling * mean(k)`` between every pair of carriages (see module)."""
+
     name = "frame_coupling"
     summary = "frame/tower compliance: coupling stiffness between the carriages (off-diagonal K)"
     params = {
@@ -57,11 +59,13 @@ class FrameCoupling(Effect):
         return self.values["coupling"] * float(np.mean(model.carriage.k))
 
     def apply(self, mats, model):
+        """``K += k_c L`` (``L`` the triangle's Laplacian); input coupling unchanged."""
         if self.values["coupling"] == 0:
             return mats
         return mats.replace(K=mats.K + self.k_c(model) * LAPLACIAN[None])
 
     def explain(self, model) -> str:
+        """``k_c`` in N/m and what it does to the lateral modes and static gain."""
         c = self.values["coupling"]
         return (f"k_c = {self.k_c(model):.4g} N/m between each pair of carriages ({c:.3f} of the belt stiffness): "
                 f"lateral (differential) modes {np.sqrt(max(1 + 3 * c, 1e-9)) - 1:+.1%}, lateral static gain "
