@@ -255,13 +255,26 @@ def _drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order):
     sys = control.tf([d1, d0], [1.0, d2, d0])
     if lag_s > 0:
         sys = sys * control.tf([1.0], [lag_s, 1.0])
-    if delay_s > 0:
-        num, den = control.pade(delay_s, pade_order)
-        sys = sys * control.tf(num, den)
     ss = control.ss(sys)
     if abs(float(np.squeeze(ss.D))) > 0:
         raise ValueError("drive filter must be strictly proper")
-    return np.asarray(ss.A), np.asarray(ss.B)[:, 0], np.asarray(ss.C)[0]
+    A, B, C = np.asarray(ss.A), np.asarray(ss.B)[:, 0], np.asarray(ss.C)[0]
+    if delay_s > 0:
+        # Pade approximant of a unit delay, time-scaled (a companion form of the scaled polynomial
+        # would be hopelessly ill-conditioned), in series after the filter: u = Pade(F q_d)
+        num, den = control.pade(1.0, pade_order)
+        p = control.ss(control.tf(num, den))
+        Ap, Bp = np.asarray(p.A) / delay_s, np.asarray(p.B)[:, 0] / delay_s
+        Cp, Dp = np.asarray(p.C)[0], float(np.squeeze(p.D))
+        n, k = len(A), len(Ap)
+        A2 = np.zeros((n + k, n + k))
+        A2[:n, :n] = A
+        A2[n:, :n] = np.outer(Bp, C)
+        A2[n:, n:] = Ap
+        B2 = np.concatenate([B, np.zeros(k)])
+        C2 = np.concatenate([Dp * C, Cp])
+        A, B, C = A2, B2, C2
+    return A, B, C
 
 
 def state_space_arrays(mats: PoseMatrices, *, pade_order: int = 6):

@@ -1,0 +1,343 @@
+"""Which physical effect is the model missing?  Fit each candidate, score it on held-out poses.
+
+For every effect in the library that the profile does not have yet, its parameters (together with
+those of the profile's own effects, which were fitted without it) are fitted to the measurements
+(:mod:`ffcomp.fit_effects`, coherence-weighted complex least squares); refitting the profile's own
+effects alone is one more candidate.  Each is scored by cross-validation **by pose**: the poses
+are split into ``k`` folds; each fold's measurements are predicted with parameters fitted on the
+other folds only.  An effect that merely bends the model towards the noise gains nothing on poses
+it has not seen.
+
+Scores use mean squares of the normalised complex residual ``r`` (per measurement) against the
+noise floor ``nu`` (:mod:`ffcomp.measure.noise`):
+
+* excess error of the base model ``E0 = mean(r0^2) - mean(nu^2)``;
+* a candidate removes ``(mean(r0^2) - mean(r_heldout^2)) / E0`` of it;
+* the base model is *significantly* wrong when ``E0 > base_threshold * mean(nu^2)``; a candidate
+  is significant when it removes at least ``min_removed`` of the excess and at least
+  ``min_gain * mean(nu^2)`` in absolute terms;
+* the status is ``ok`` (nothing significant to explain), ``explained`` (the best candidate removes
+  at least ``explain_fraction`` of the excess), ``partial`` (it is significant but leaves more:
+  fit it and diagnose again, or something outside the library is missing) or ``unexplained``.
+
+Candidates are ranked by held-out residual, significant ones first; when the profile already has
+effects, a new effect is significant only if it also beats refitting those effects alone by the
+same margins (parsimony).  The evidence in words comes from the fitted values
+(``Effect.explain``) and from the residual's signatures (:mod:`ffcomp.diagnose_evidence`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .diagnose_evidence import evidence, features
+from .fit_effects import Objective, _model_with, fit_free
+from .measure.noise import noise_floor
+from .measure.predict import BatchPredictor, check_measurements
+from .model.effects import EFFECTS, load_library
+from .model.lpv import LpvModel
+
+__all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One candidate effect, fitted on all data and scored on held-out poses.
+
+    ``heldout`` and ``insample`` are per-measurement normalised complex residuals, shape (N,);
+    ``removed`` is the fraction of the base model's excess error (above noise) removed held out.
+    """
+
+    effect: str
+    refit: bool
+    params: dict
+    estimates: tuple
+    heldout: np.ndarray
+    insample: np.ndarray
+    removed: float
+    gain: float
+    significant: bool
+    explanation: str
+    evidence: tuple
+    effects: tuple = ()
+
+    @property
+    def label(self) -> str:
+        return f"refit {self.effect}" if self.refit else self.effect
+
+    @property
+    def command(self) -> str:
+        """The ``ffcomp fit`` call that applies this candidate."""
+        add = "" if self.refit else f" --add {self.effect}"
+        return f"ffcomp fit DATA --profile P.toml{add} -o P2.toml"
+
+    @property
+    def mean_heldout(self) -> float:
+        return float(np.mean(self.heldout))
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "refit": self.refit, "params": dict(self.params),
+                "estimates": [e.to_dict() for e in self.estimates],
+                "mean_residual_heldout": self.mean_heldout, "mean_residual_insample": float(np.mean(self.insample)),
+                "removed_fraction": self.removed, "gain_over_noise": self.gain, "significant": self.significant,
+                "explanation": self.explanation, "evidence": list(self.evidence),
+                "effects": [dict(e) for e in self.effects], "command": self.command,
+                "residual_heldout": self.heldout.tolist()}
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Result of :func:`diagnose`; candidates ranked best first."""
+
+    profile: str
+    labels: tuple
+    n_poses: int
+    folds: int
+    noise: np.ndarray
+    noise_source: str
+    base_residual: np.ndarray
+    base_significant: bool
+    candidates: tuple
+    evidence: tuple
+    verdict: str
+    status: str = "ok"
+
+    @property
+    def noise_floor(self) -> float:
+        return float(np.mean(self.noise))
+
+    @property
+    def best(self) -> Candidate | None:
+        """The top-ranked candidate (lowest held-out residual), significant or not."""
+        return self.candidates[0] if self.candidates else None
+
+    @property
+    def significant(self) -> list[Candidate]:
+        """The significant candidates, best first."""
+        return [c for c in self.candidates if c.significant]
+
+    def to_dict(self) -> dict:
+        return {"profile": self.profile, "n_measurements": len(self.labels), "n_poses": self.n_poses,
+                "folds": self.folds, "noise_floor": self.noise_floor, "noise_source": self.noise_source,
+                "mean_residual_base": float(np.mean(self.base_residual)),
+                "base_significant": self.base_significant, "status": self.status, "verdict": self.verdict,
+                "evidence": [e.to_dict() for e in self.evidence],
+                "candidates": [c.to_dict() for c in self.candidates],
+                "measurements": list(self.labels), "residual_base": self.base_residual.tolist(),
+                "noise": self.noise.tolist()}
+
+
+def pose_folds(measurements, k: int) -> list[np.ndarray]:
+    """Split measurement indices into ``k`` folds by pose (all sweeps at a pose go together)."""
+    keys = [tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in measurements]
+    poses = sorted(set(keys), key=lambda p: (p[2], np.hypot(p[0], p[1]), np.arctan2(p[1], p[0])))
+    k = max(1, min(k, len(poses)))
+    fold_of = {p: i % k for i, p in enumerate(poses)}
+    return [np.array([j for j, key in enumerate(keys) if fold_of[key] == f]) for f in range(k)]
+
+
+def _specs_of(profile) -> list[dict]:
+    out = []
+    for e in profile.effects:
+        cls = EFFECTS[e["name"]]
+        out.append({"name": cls.name, **{k: float(e.get(k, p.default)) for k, p in cls.params.items()}})
+    return out
+
+
+def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,
+             min_removed: float = 0.25, min_gain: float = 0.3, explain_fraction: float = 0.8,
+             min_floor: float = 0.003) -> Diagnosis:
+    """Rank candidate effects by the error they remove on held-out poses.
+
+    Parameters
+    ----------
+    profile : PrinterProfile
+        The model to diagnose (its own effects are part of the base model).
+    measurements : sequence of FrfMeasurement
+    candidates : sequence of str, optional
+        Effect names to try (default: every registered effect; those already in the profile are
+        refitted).
+    folds : int
+        Cross-validation folds by pose (fewer if there are fewer poses; no held-out scoring with
+        fewer than 3 poses).
+    base_threshold, min_removed, min_gain, explain_fraction : float
+        Significance thresholds (see the module docstring).
+    min_floor : float
+        Smallest noise floor used for significance (relative): noise-free data (a simulation,
+        coherence 1) would otherwise make any linearisation or rounding error "significant".
+
+    Returns
+    -------
+    Diagnosis
+    """
+    load_library()
+    measurements = list(measurements)
+    model0 = LpvModel.from_profile(profile, effects=False)
+    check_measurements(model0, measurements)
+    base_specs = _specs_of(profile)
+    obj = Objective(measurements)
+    base_model = _model_with(model0, base_specs)
+    preds = obj.predictor(base_model)
+    r0 = obj.per_measurement(base_model)
+    nf = [noise_floor(m) for m in measurements]
+    nu = np.array([v for v, _ in nf])
+    src = "coherence" if all(s == "coherence" for _, s in nf) else (
+        "data" if all(s == "data" for _, s in nf) else "coherence and data")
+    nu = np.where(np.isfinite(nu), nu, np.nanmedian(nu) if np.any(np.isfinite(nu)) else 0.0)
+    nu = np.maximum(nu, min_floor)
+    nu2 = float(np.mean(nu**2))
+    e0 = float(np.mean(r0**2)) - nu2
+    base_sig = e0 > base_threshold * nu2
+    fold_idx = pose_folds(measurements, folds)
+    n_poses = len({tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in measurements})
+    cv = len(fold_idx) >= 3
+    fold_objs = []
+    if cv:
+        for test in fold_idx:
+            train = np.setdiff1d(np.arange(len(measurements)), test)
+            tr = [measurements[i] for i in train]
+            te = [measurements[i] for i in test]
+            fold_objs.append((test, Objective(tr, BatchPredictor(tr)), Objective(te, BatchPredictor(te))))
+    names = list(candidates) if candidates else sorted(EFFECTS)
+    for name in names:
+        if name not in EFFECTS:
+            raise ValueError(f"unknown effect {name!r} (known: {', '.join(sorted(EFFECTS))})")
+    present = [s["name"] for s in base_specs]
+    # the profile's own effects were fitted without the missing one: refit them alongside each candidate
+    old_free = [(i, p) for i, s in enumerate(base_specs) for p in EFFECTS[s["name"]].fit_params()]
+    jobs = []
+    for name in names:
+        if name in present:
+            continue
+        cls = EFFECTS[name]
+        specs = base_specs + [{"name": name, **{p: v.default for p, v in cls.params.items()}}]
+        new = [(len(base_specs), p) for p in cls.fit_params()]
+        jobs.append((name, False, specs, old_free + new, [False] * len(old_free) + [cls.grid] * len(new)))
+    if old_free and (candidates is None or any(n in present for n in names)):
+        # first: a new effect must beat merely refitting the profile's own effects (parsimony)
+        jobs.insert(0, ("+".join(present), True, base_specs, old_free, [False] * len(old_free)))
+    ev = evidence(features(base_model, measurements, preds, r0, nu))
+    cands = []
+    ref2 = float(np.mean(r0**2))  # reference of the new-effect candidates: base, or the refit if better
+    for name, refit, specs, free, fresh in jobs:
+        full = fit_free(model0, specs, free, measurements, fresh=fresh, objective=obj, tol=1e-6, max_nfev=30)
+        x_full = np.array([e.value for e in full.estimates])
+        held = np.empty(len(measurements))
+        if cv:
+            for test, otr, ote in fold_objs:
+                # warm start from the all-data optimum: a few iterations suffice to score the fold
+                fr = fit_free(model0, specs, free, None, x0=x_full, objective=otr, before=base_specs, tol=1e-4,
+                              max_nfev=8)
+                held[test] = ote.per_measurement(_model_with(model0, fr.effects))
+        else:
+            held = full.residual_after
+        gain = float(np.mean(r0**2) - np.mean(held**2))
+        removed = min(gain / e0, 1.0) if e0 > 0 else 0.0  # > 1 only when held out beats the noise estimate
+        sig = bool(base_sig and removed >= min_removed and gain >= min_gain * nu2)
+        if not refit and ref2 < float(np.mean(r0**2)):
+            inc = ref2 - float(np.mean(held**2))  # what the new effect adds to the refit alone
+            sig = sig and inc >= min_gain * nu2 and inc >= min_removed * max(ref2 - nu2, 0.0)
+        if refit:
+            ref2 = min(ref2, float(np.mean(held**2)))
+        mine = list(full.effects) if refit else [full.effects[-1]]
+        keys = {k for e in mine for k in getattr(EFFECTS[e["name"]], "evidence_keys", ())}
+        expl = "; ".join(EFFECTS[e["name"]](**{p: v for p, v in e.items() if p != "name"}).explain(model0)
+                         for e in mine)
+        params = {p: v for p, v in full.effects[-1].items() if p != "name"} if not refit else {
+            f"{e['name']}:{p}": v for e in full.effects for p, v in e.items() if p != "name"}
+        cands.append(Candidate(name, refit, params, tuple(full.estimates), held, full.residual_after,
+                               float(removed), gain / nu2 if nu2 else float("inf"), sig, expl,
+                               tuple(e.text for e in ev if e.key in keys and e.strength >= 0.5), tuple(full.effects)))
+    cands.sort(key=lambda c: (not c.significant, c.mean_heldout))
+    for j, c in enumerate(cands[:2]):
+        if c.significant and not c.refit:
+            txt = _pose_consistency(model0, [dict(e) for e in c.effects], len(c.effects) - 1, measurements, c)
+            if txt:
+                cands[j] = replace(c, evidence=(txt,) + c.evidence)
+    sig = [c for c in cands if c.significant]
+    status = ("ok" if not base_sig else "unexplained" if not sig else
+              "explained" if sig[0].removed >= explain_fraction else "partial")
+    verdict = _verdict(r0, nu, status, cands, cv)
+    labels = tuple(m.path or m.label for m in measurements)
+    return Diagnosis(profile.name, labels, n_poses, len(fold_idx) if cv else 0, nu, src, r0, base_sig,
+                     tuple(cands), tuple(ev), verdict, status)
+
+
+def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:
+    """Fit the candidate pose by pose: is its parameter the same everywhere (physical) or not?"""
+    cls = EFFECTS[cand.effect]
+    free = [(k, p) for p in cls.fit_params()]
+    x_full = np.array([specs[k][p] for _, p in free])
+    groups: dict = {}
+    for m in measurements:
+        groups.setdefault(tuple(np.round(np.asarray(m.position_mm, float), 0)), []).append(m)
+    if len(groups) < 3:
+        return None
+    vals, ses = [], []
+    for ms in groups.values():
+        fr = fit_free(model0, specs, free, ms, x0=x_full, max_nfev=30, tol=1e-6)
+        vals.append([e.value for e in fr.estimates])
+        ses.append([e.stderr if not e.at_bound else np.nan for e in fr.estimates])
+    vals, ses = np.array(vals), np.array(ses)
+    parts = []
+    order = sorted(range(len(free)), key=lambda i: -abs(x_full[i] - cls.params[free[i][1]].default)
+                   / np.ptp(cls.params[free[i][1]].fit_range))
+    for i in order[:2]:
+        p = cls.params[free[i][1]]
+        if abs(x_full[i] - p.default) < 0.01 * np.ptp(p.fit_range):
+            continue
+        ok = np.isfinite(ses[:, i]) & (ses[:, i] < 0.1 * np.ptp(p.fit_range))
+        if ok.sum() < 3:
+            continue
+        v = vals[ok, i]
+        lo, hi = np.percentile(v, [25, 75])
+        med = float(np.median(v))
+        tol = max(0.15 * abs(x_full[i] - p.default), 0.02 * np.ptp(p.fit_range))
+        unit = f" {p.unit}" if p.unit else ""
+        txt = f"{free[i][1]} {med:.4g} ({lo:.4g} to {hi:.4g}){unit}"
+        if abs(med - x_full[i]) > tol:
+            txt += f" but {x_full[i]:.4g} from all poses together — not one value"
+        elif hi - lo < tol:
+            txt += " — the same at every pose"
+        else:
+            txt += " — varies from pose to pose"
+        parts.append(txt)
+    if not parts:
+        return None
+    return f"fitted pose by pose ({len(groups)} poses; median, quartiles): " + "; ".join(parts)
+
+
+def _verdict(r0, nu, status, cands, cv) -> str:
+    m0, mn = float(np.mean(r0)), float(np.mean(nu))
+    how = "on held-out poses" if cv else "in sample (too few poses to hold any out)"
+    if status == "ok":
+        return (f"The model matches the measurements to the noise floor (mean residual {m0:.4f}, noise {mn:.4f}): "
+                "nothing significant to diagnose.")
+    if status == "unexplained":
+        best = cands[0] if cands else None
+        tail = (f" The best candidate, {best.label}, removes only {max(best.removed, 0):.0%} of the error above the "
+                f"noise {how}.") if best else ""
+        return (f"The model misses something (mean residual {m0:.4f}, noise {mn:.4f}) that no candidate effect "
+                f"explains.{tail} Look at where it fails (ffcomp validate) and the evidence below.")
+    sig = [c for c in cands if c.significant]
+    c = sig[0]
+    left = float(np.mean(c.heldout))
+    alt = ""
+    if len(sig) > 1:
+        alt = (" Partial alternatives (they remove part of the same error, less of it): "
+               + ", ".join(f"{s.label} ({s.removed:.0%})" for s in sig[1:]) + ".")
+    fit = f" Apply it with: {c.command}"
+    if status == "partial":
+        return (f"No candidate explains all of it (mean residual {m0:.4f}, noise {mn:.4f}). The best, {c.label}, "
+                f"removes {c.removed:.0%} of the error above the noise {how} (-> {left:.4f}): fit it and diagnose "
+                f"again (a second effect?), or something outside the library is missing.{alt}{fit}")
+    more = (" Some error remains above the noise: after fitting it, diagnose again."
+            if np.mean(c.heldout**2) > 1.5**2 * np.mean(nu**2) else "")
+    if c.refit:
+        return (f"Nothing new is missing: the profile's own effects ({c.effect}) have the wrong parameters. "
+                f"Refitting them removes {c.removed:.0%} of the error above the noise {how} (mean residual "
+                f"{m0:.4f} -> {left:.4f}, noise {mn:.4f}).{more}{fit}")
+    return (f"Most likely missing: {c.label}. It removes {c.removed:.0%} of the error above the noise {how} "
+            f"(mean residual {m0:.4f} -> {left:.4f}, noise {mn:.4f}).{more}{alt}{fit}")
