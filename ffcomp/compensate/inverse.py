@@ -206,15 +206,18 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
     return InverseResult(q_cmd=q_cmd[sl], u=u[sl], q_pred_mech=(q + pred_e)[sl])
 
 
-def inverse_dynamics_force(model: LpvModel, mats: PoseMatrices, q, qd, qdd, X) -> np.ndarray:
+def inverse_dynamics_force(model: LpvModel, mats: PoseMatrices, q, qd, qdd, X, q_anchor=None) -> np.ndarray:
     """Drive-side force the exact inverse must add: ``B_c delta' + B_k delta = g`` with
 
     ``g = M q'' + C q' + K q - B_c q' - B_k q + m_nt J^T J_dot q'`` evaluated at every sample's
     pose (the last term is the nonlinear velocity coupling of Eq. 15), shape (N, 3), N.
+    Positions are taken relative to ``q_anchor`` (the rest position the stream starts from), where
+    every spring of the model is relaxed; for the paper's model ``K = diag(B_k)`` and it cancels.
     """
     from ..kinematics import jacobian_dot
 
-    g = -reference_forcing(mats, q, qd, qdd)
+    qa = q if q_anchor is None else q - q_anchor
+    g = -reference_forcing(mats, qa, qd, qdd)
     Xd = np.einsum("nij,nj->ni", mats.J, qd)
     Jd = jacobian_dot(model.geometry, X, Xd)
     g += model.m_nt * np.einsum("nki,nk->ni", mats.J, np.einsum("nij,nj->ni", Jd, qd))
@@ -231,10 +234,12 @@ def _mech_stage_fast(model, q, qd, qdd, X, Xm, basis, win, adv, cfg):
     from .ltv import simulate_lti
 
     mats = model.matrices(Xm, check=False)
-    g = inverse_dynamics_force(model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X)
+    g = inverse_dynamics_force(model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, q[0])
     x0 = Xm[:1].copy()
     x0[:, :2] = 0.0
     mats0 = model.matrices(x0, check=False)
+    # the drive pushes with the belt stiffness of the pose, the weighting model with the centre's
+    g = g * (mats0.B_k[0] / mats.B_k)
     A0, _ = mech_arrays(mats0)
     Bf = np.zeros((6, 3))
     Bf[3:] = np.linalg.inv(mats0.M[0])
@@ -255,7 +260,7 @@ def _mech_stage_frozen(model, q, qd, qdd, X, basis, win, adv, cfg):
     m = basis.m
     Np = len(q)
     mats_all = model.matrices(X, check=False)
-    f_ref = reference_forcing(mats_all, q, qd, qdd)
+    f_ref = reference_forcing(mats_all, q - q[0], qd, qdd)
     if cfg.method == "window-centre":
         seg_pose = lambda idx: np.minimum((idx // adv) * adv + adv // 2, Np - 1)  # noqa: E731
     else:

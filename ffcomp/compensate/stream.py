@@ -262,6 +262,7 @@ class StreamingInverse:
         self.Bf = np.zeros((6, 3))
         self.Bf[3:] = np.linalg.inv(mats0.M[0])
         self.foh0 = modal_foh(self.A0[None], self.Bf[None], dt)
+        self.Bk0 = mats0.B_k[0].copy()
         self.zA = None
         self.g_last = None
         L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
@@ -301,7 +302,8 @@ class StreamingInverse:
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
         mats = self.model.matrices(Xm, check=False)
-        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X)
+        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, self.q0)
+        g = g * (self.Bk0 / mats.B_k)  # the drive pushes with the pose's belt stiffness (see inverse.py)
         # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
         if self.zA is None:
             tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt, foh=self.foh0)
