@@ -17,7 +17,8 @@ Sections
     ``max_velocity_mm_s``, ``max_accel_mm_s2``, ``max_z_velocity_mm_s``, ``max_z_accel_mm_s2``,
     ``square_corner_velocity_mm_s``, ``minimum_cruise_ratio``, ``junction_deviation_mm`` (Marlin),
     ``instantaneous_corner_velocity_mm_s`` (Klipper's extruder junction limit),
-    ``max_extrude_only_velocity_mm_s``, ``max_extrude_only_accel_mm_s2``, ``planner`` (``"klipper"`` or
+    ``max_extrude_only_velocity_mm_s``, ``max_extrude_only_accel_mm_s2``, the compensated command's bounds
+    ``max_carriage_velocity_mm_s``, ``max_carriage_accel_mm_s2``, ``max_correction_mm``, ``planner`` (``"klipper"`` or
     ``"marlin"``), ``steps_per_mm`` (microsteps included),
     ``microsteps``, ``sample_rate_hz``.
 ``[dynamics]``
@@ -104,6 +105,9 @@ class Limits:
     instantaneous_corner_velocity_mm_s: float = 1.0
     max_extrude_only_velocity_mm_s: float = 120.0
     max_extrude_only_accel_mm_s2: float = 3000.0
+    max_carriage_velocity_mm_s: float = 900.0
+    max_carriage_accel_mm_s2: float = 60000.0
+    max_correction_mm: float = 2.0
     planner: str = "klipper"
     steps_per_mm: float = 80.0
     microsteps: int = 16
@@ -232,6 +236,9 @@ _RULES: dict[str, dict[str, dict]] = {
         "instantaneous_corner_velocity_mm_s": {"nonneg": True},
         "max_extrude_only_velocity_mm_s": {"positive": True},
         "max_extrude_only_accel_mm_s2": {"positive": True},
+        "max_carriage_velocity_mm_s": {"positive": True},
+        "max_carriage_accel_mm_s2": {"positive": True},
+        "max_correction_mm": {"positive": True},
         "steps_per_mm": {"positive": True},
         "microsteps": {"positive": True},
         "sample_rate_hz": {"lo": 100.0, "hi": 100000.0},

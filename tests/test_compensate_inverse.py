@@ -67,3 +67,22 @@ def test_streaming_equals_in_memory(model, paths, chunk):
     o = np.concatenate(out)
     assert o.shape == q.shape
     np.testing.assert_allclose(o, ref, atol=1e-9)
+
+
+def test_bounds_are_enforced_with_osqp(model, paths):
+    """Tight bounds on the correction and the carriage acceleration: OSQP keeps the command inside."""
+    X, q = paths["off100"]
+    qd, qdd = _derivatives(q, 1e-3)
+    D, V, A = 0.12e-3, 0.9, 25.0  # m, m/s, m/s^2 (the free solution needs ~0.3 mm and more acceleration)
+    si = StreamingInverse(model, 1e-3, InverseConfig(bounds=(D, V, A)))
+    out = np.concatenate([si.push(q, X, qd, qdd), si.finish()])
+    assert si.drive[0].qp_windows > 0  # the bounds did bind
+    dev = out - q
+    assert np.max(np.abs(dev)) < D * 1.02
+    acc = np.diff(out, 2, axis=0) / 1e-6
+    ref_acc = np.abs(qdd[1:-1])
+    assert np.all(np.abs(acc) <= np.maximum(A, ref_acc) * 1.1 + 0.5)
+    before = _rms_um(model, X, q, q)
+    free = _rms_um(model, X, q, invert(model, q, X, 1e-3).q_cmd)
+    bounded = _rms_um(model, X, q, out)
+    assert free < bounded < 0.5 * before  # less correction allowed, still far better than none

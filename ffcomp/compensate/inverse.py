@@ -64,6 +64,8 @@ class InverseConfig:
     substeps : integration substeps per sample inside a basis' support
     row_stride : evaluate the mechanics residual on every this-many-th sample
     kernel_tol : truncate kernels when the slowest mode has decayed to this fraction
+    bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
+        with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
     """
 
     method: str = "lpv"
@@ -81,6 +83,7 @@ class InverseConfig:
     substeps: int = 2
     row_stride: int = 2
     kernel_tol: float = 1e-3
+    bounds: tuple | None = None
 
     def __post_init__(self):
         if self.method not in METHODS:

@@ -71,6 +71,11 @@ class FbsStream:
         self.tgt = np.zeros((0, self.n_out * self.C))
         self.pin = np.zeros(0, bool)  # rows where the spline itself must be zero
         self.pin_weight = 1e3
+        self.bounds = None  # (deviation m, velocity m/s, acceleration m/s^2) of the command, see set_bounds
+        self.rvel = np.zeros((0, self.C))  # reference velocity and acceleration of each row (for the bounds)
+        self.racc = np.zeros((0, self.C))
+        self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
+        self._qp_cache: dict = {}
         self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
         self.w0 = 0
         self.coef = np.zeros((0, self.n_in * self.C))  # committed coefficients of bases [cj0, cj0 + len)
@@ -123,6 +128,8 @@ class FbsStream:
             c = cho_solve(factor, g, check_finite=False).reshape(nJ, self.n_in)
         if not np.all(np.isfinite(c)):
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
+        if self.bounds is not None and self.n_in == 1 and self.n_out == 1:
+            c = self._bounded(c, rows, nJ, a, g, factor, lam, pins)
         n_commit = nJ if final else self.A // m
         c = c[:n_commit]
         # predicted output of the committed bases (overlap-add of identical kernels)
@@ -139,6 +146,92 @@ class FbsStream:
                     self.pred[a:a + len(y), o] += y
         self.coef = np.concatenate([self.coef, c])
         self.w0 += n_commit * m
+
+    # ------------------------------------------------------------------ bounds (OSQP)
+    def set_bounds(self, deviation: float, velocity: float, acceleration: float, stride: int = 2) -> None:
+        """Bound the command ``reference + spline``: ``|spline| <= deviation`` (m), ``|velocity| <=
+        velocity`` (m/s), ``|acceleration| <= acceleration`` (m/s^2), checked every ``stride`` samples.
+        Windows whose least-squares solution breaks a bound are re-solved as a QP with OSQP
+        (warm-started).  A bound the reference itself breaks is relaxed to the reference's value there.
+        """
+        self.bounds = (float(deviation), float(velocity), float(acceleration))
+        self.cstride = int(stride)
+
+    def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
+        """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
+        sup = self.basis.support
+        if not hasattr(self, "_shapes"):
+            self._shapes = (self.basis.shape(0), self.basis.shape(1), self.basis.shape(2))
+        off = rows[:, None] - starts[None, :]
+        ok = (off >= 0) & (off < sup)
+        oc = np.clip(off, 0, sup - 1)
+        return tuple(np.where(ok, sh[oc], 0.0) for sh in self._shapes)
+
+    def _bounded(self, c, rows, nJ, a, g, factor, lam, pins):
+        import osqp
+        import scipy.sparse as sp
+
+        m, dt = self.m, self.basis.dt_s
+        D, V, Acc = self.bounds
+        r = np.arange(0, rows, self.cstride)
+        B0, B1, B2 = self._basis_rows(np.arange(nJ) * m, r)
+        live = np.abs(B0).sum(1) + np.abs(B2).sum(1) > 0  # rows the new bases can still change
+        r, B0, B1, B2 = r[live], B0[live], B1[live], B2[live]
+        # committed bases still acting on these rows
+        sup_j = self.basis.support // m + 1
+        jp = np.arange(max(self.cj0, self.w0 // m - sup_j), self.w0 // m)
+        cp = self.coef[jp - self.cj0] if len(jp) else np.zeros((0, self.C))
+        P0, P1, P2 = self._basis_rows(jp * m - self.w0, r) if len(jp) else (np.zeros((len(r), 0)),) * 3
+        e0, e1, e2 = P0 @ cp, P1 @ cp, P2 @ cp  # (R, C)
+        vref, aref = self.rvel[a + r], self.racc[a + r]
+        val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref
+        # never demand more than the reference or the committed past allow
+        Vb = np.maximum(V, np.abs(vref) * 1.0001)
+        Ab = np.maximum(Acc, np.abs(aref) * 1.0001)
+        bad = (np.abs(val) > D) | (np.abs(vel) > Vb) | (np.abs(acc) > Ab)
+        chans = np.nonzero(bad.any(axis=0))[0]
+        if chans.size == 0:
+            return c
+        self.qp_windows += 1
+        # OSQP works on a scaled problem: coefficients in units of 0.1 mm, the objective normalised,
+        # every constraint row normalised to unit size (values, velocities, accelerations differ by
+        # orders of magnitude)
+        sc = 1e-4
+        key = (nJ, rows, pins.size == 0)
+        if key not in self._qp_cache or pins.size:
+            if rows == self.W and pins.size == 0:
+                G = self.Phi.T @ self.Phi
+                G[np.diag_indices_from(G)] += lam
+            else:  # rare: the tail window or pinned rows
+                G = np.linalg.inv(_chol_to_inv(factor))
+            gn = float(np.mean(np.diag(G))) * sc * sc
+            Araw = np.vstack([B0, B1, B2]) * sc
+            rn = np.maximum(np.max(np.abs(Araw), axis=1), 1e-300)
+            solver = osqp.OSQP()
+            solver.setup(P=sp.triu(sp.csc_matrix(G * sc * sc / gn), format="csc"), q=np.zeros(nJ),
+                         A=sp.csc_matrix(Araw / rn[:, None]), l=-np.ones(len(rn)), u=np.ones(len(rn)),
+                         verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5, max_iter=4000,
+                         polishing=True)
+            entry = (solver, gn, rn)
+            if pins.size == 0:
+                self._qp_cache[key] = entry
+        else:
+            entry = self._qp_cache[key]
+        solver, gn, rn = entry
+        out = c.copy()
+        for ch in chans:
+            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch], -Ab[:, ch] - aref[:, ch] - e2[:, ch]])
+            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch], Ab[:, ch] - aref[:, ch] - e2[:, ch]])
+            solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
+            solver.warm_start(x=c[:, ch] / sc)
+            res = solver.solve(raise_error=False)
+            ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
+            if not ok or res.x is None or not np.all(np.isfinite(res.x)):
+                raise SolverError(f"OSQP could not keep the command within its bounds in the window starting at "
+                                  f"t = {self.w0 * dt:.3f} s (status {res.info.status!r}; bounds: deviation {D * 1e3:g} mm, "
+                                  f"velocity {V * 1e3:g} mm/s, acceleration {Acc * 1e3:g} mm/s^2)")
+            out[:, ch] = res.x * sc
+        return out
 
     def _values(self, upto: int) -> np.ndarray:
         """Spline values for samples [done, upto) (all their bases committed)."""
@@ -163,12 +256,15 @@ class FbsStream:
         self.cj0 = keep_j
         return out
 
-    def feed(self, target: np.ndarray, pin: np.ndarray | None = None) -> np.ndarray:
+    def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None) -> np.ndarray:
         """Add target rows (and optionally a mask of rows where the spline must vanish); returns
         spline values of samples that became final (in order)."""
         target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
+        z = np.zeros((len(target), self.C))
+        self.rvel = np.concatenate([self.rvel, z if ref_vel is None else np.asarray(ref_vel, float).reshape(-1, self.C)])
+        self.racc = np.concatenate([self.racc, z if ref_acc is None else np.asarray(ref_acc, float).reshape(-1, self.C)])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -191,7 +287,15 @@ class FbsStream:
             self.tgt = self.tgt[cut:]
             self.pred = self.pred[cut:]
             self.pin = self.pin[cut:]
+            self.rvel = self.rvel[cut:]
+            self.racc = self.racc[cut:]
             self.off += cut
+
+
+def _chol_to_inv(factor) -> np.ndarray:
+    """Inverse of the matrix a ``cho_factor`` result factorises (for rebuilding the Gram)."""
+    n = factor[0].shape[0]
+    return cho_solve(factor, np.eye(n), check_finite=False)
 
 
 def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
@@ -283,6 +387,10 @@ class StreamingInverse:
                                         channels=3 if self.shared_drive else 1))
         for i in range(3):
             self.dfilt.append(_DriveFilter(*params[i], dt))
+        if cfg.bounds is not None:
+            for d in self.drive:
+                d.set_bounds(*cfg.bounds)
+        self.dbuf = np.zeros((0, 6))  # reference carriage velocity and acceleration of rows in qbuf_u
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -298,6 +406,7 @@ class StreamingInverse:
     def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
+        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -319,19 +428,20 @@ class StreamingInverse:
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
         pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, final=False))
+        dn, self.dbuf = self.dbuf[:n], self.dbuf[n:]
+        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=False))
 
-    def _drive_stage(self, qn, u, pn, final: bool) -> list:
+    def _drive_stage(self, qn, u, pn, dn, final: bool) -> list:
         """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
         tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
         if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn)
+            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:])
             if final:
                 e = np.concatenate([e, self.drive[0].finish()])
             return [e[:, i] for i in range(3)]
         eps = []
         for i in range(3):
-            e = self.drive[i].feed(tgt[:, i:i + 1], pn)[:, 0]
+            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i])[:, 0]
             if final:
                 e = np.concatenate([e, self.drive[i].finish()[:, 0]])
             eps.append(e)
@@ -394,4 +504,5 @@ class StreamingInverse:
         n = len(delta)
         qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
         pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, final=True))
+        dn, self.dbuf = self.dbuf[:n], self.dbuf[n:]
+        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=True))

@@ -205,7 +205,7 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
     model = LpvModel.from_profile(profile)
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
-    icfg = InverseConfig(**{**asdict(opts.inverse), "method": opts.method})
+    icfg = inverse_config(profile, opts)
     summ = CompensationSummary(source=src, output=str(out_path) if out_path else "-", method=opts.method,
                                lines_in=total_lines)
     out_dir = os.path.dirname(os.path.abspath(out_path)) if out_path else tempfile.gettempdir()
@@ -395,6 +395,14 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     if inv is not None:
         push_post(last_meta)
         yield from out(inv.finish())
+
+
+def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:
+    """The inverse settings of a run: the options' plus the command bounds from the profile."""
+    lim = profile.limits
+    bounds = opts.inverse.bounds or (lim.max_correction_mm * 1e-3, lim.max_carriage_velocity_mm_s * 1e-3,
+                                     lim.max_carriage_accel_mm_s2 * 1e-3)
+    return InverseConfig(**{**asdict(opts.inverse), "method": opts.method, "bounds": bounds})
 
 
 def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:

@@ -13,11 +13,10 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..compensate.inverse import InverseConfig
 from ..gcode.planner import GcodePlan
 from ..model.lpv import LpvModel
 from ..steps import STEPPERS, positions_from_steps, read_ffsteps, read_plain, step_events, write_ffsteps, write_plain
-from .compensate_flow import CompensateOptions, CompensationSummary, compensated_stream
+from .compensate_flow import CompensateOptions, CompensationSummary, compensated_stream, inverse_config
 
 __all__ = ["StepsSummary", "steps_file"]
 
@@ -48,7 +47,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     dt = 1.0 / profile.limits.sample_rate_hz
     spm = profile.limits.steps_per_mm
     opts = CompensateOptions(method=method, lenient=lenient, predict=False, self_check=False)
-    icfg = InverseConfig(method=method)
+    icfg = inverse_config(profile, opts)
     summ_c = CompensationSummary(source=src, output=out_path, method=method)
     plan = GcodePlan(src, profile, lenient=lenient)
     per = {n: ([], []) for n in STEPPERS}
