@@ -4,12 +4,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from trajectories import square, trapezoid_path
 
 from ffcomp.compensate.inverse import invert
 from ffcomp.compensate.predict import predict_lpv
 from ffcomp.kinematics import inverse, jacobian
 from ffcomp.model import LpvModel
-from trajectories import square, trapezoid_path
 
 EFFECTS = [
     {"name": "belt_span", "l1_ref_mm": 320, "loop_mm": 1300},

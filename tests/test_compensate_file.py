@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from cli_util import run
+
 from ffcomp.errors import GcodeError, KinematicsError
 from ffcomp.gcode.planner import GcodePlan
-from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
+from ffcomp.pipeline.compensate_flow import compensate_file
 from ffcomp.steps import positions_from_steps, read_ffsteps, read_plain
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples" / "gcode"

@@ -2,12 +2,12 @@
 
 import numpy as np
 import pytest
+from trajectories import square, trapezoid_path
 
 from ffcomp.compensate.inverse import InverseConfig, _derivatives, invert
 from ffcomp.compensate.predict import predict_lpv
 from ffcomp.compensate.stream import StreamingInverse
 from ffcomp.kinematics import inverse, jacobian
-from trajectories import square, trapezoid_path
 
 
 def _rms_um(model, X, q, q_cmd):

@@ -2,7 +2,6 @@
 
 import control
 import numpy as np
-import pytest
 
 from ffcomp.compensate.bspline import UniformBasis
 from ffcomp.compensate.fbs import FbsConfig, fbs_solve

@@ -220,16 +220,18 @@ class FbsStream:
         solver, gn, rn = entry
         out = c.copy()
         for ch in chans:
-            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch], -Ab[:, ch] - aref[:, ch] - e2[:, ch]])
-            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch], Ab[:, ch] - aref[:, ch] - e2[:, ch]])
+            v0, a0 = vref[:, ch] + e1[:, ch], aref[:, ch] + e2[:, ch]
+            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - v0, -Ab[:, ch] - a0])
+            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, Ab[:, ch] - a0])
             solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
             solver.warm_start(x=c[:, ch] / sc)
             res = solver.solve(raise_error=False)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if not ok or res.x is None or not np.all(np.isfinite(res.x)):
-                raise SolverError(f"OSQP could not keep the command within its bounds in the window starting at "
-                                  f"t = {self.w0 * dt:.3f} s (status {res.info.status!r}; bounds: deviation {D * 1e3:g} mm, "
-                                  f"velocity {V * 1e3:g} mm/s, acceleration {Acc * 1e3:g} mm/s^2)")
+                raise SolverError(
+                    f"OSQP could not keep the command within its bounds in the window starting at t = "
+                    f"{self.w0 * dt:.3f} s (status {res.info.status!r}; bounds: deviation {D * 1e3:g} mm, "
+                    f"velocity {V * 1e3:g} mm/s, acceleration {Acc * 1e3:g} mm/s^2)")
             out[:, ch] = res.x * sc
         return out
 
@@ -263,8 +265,10 @@ class FbsStream:
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
         z = np.zeros((len(target), self.C))
-        self.rvel = np.concatenate([self.rvel, z if ref_vel is None else np.asarray(ref_vel, float).reshape(-1, self.C)])
-        self.racc = np.concatenate([self.racc, z if ref_acc is None else np.asarray(ref_acc, float).reshape(-1, self.C)])
+        rv = z if ref_vel is None else np.asarray(ref_vel, float).reshape(-1, self.C)
+        ra = z if ref_acc is None else np.asarray(ref_acc, float).reshape(-1, self.C)
+        self.rvel = np.concatenate([self.rvel, rv])
+        self.racc = np.concatenate([self.racc, ra])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
