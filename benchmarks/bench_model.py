@@ -40,7 +40,8 @@ def main() -> None:
     print(f"LPV model, {len(poses)} poses x {len(freqs)} frequencies, one thread")
     for frame in ("joint", "task"):
         t = _median_time(lambda fr=frame: frequency_response(model, poses, freqs, frame=fr))
-        print(f"  frequency_response(frame={frame!r}): {t:.3f} s  ({len(poses) * len(freqs) / t / 1e6:.2f} M pose-freq/s)")
+        rate = len(poses) * len(freqs) / t / 1e6
+        print(f"  frequency_response(frame={frame!r}): {t:.3f} s  ({rate:.2f} M pose-freq/s)")
     t = _median_time(lambda: model.matrices(poses))
     print(f"  pose matrices only: {t * 1e3:.1f} ms")
     t = _median_time(lambda: modes(model, poses))
