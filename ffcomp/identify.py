@@ -196,7 +196,7 @@ def fit_eq22(meas: FrfMeasurement) -> Eq22Fit:
         sq = np.sqrt(d0_)
         return _rel_residual(meas, eq22_response(s, wn, zeta, tau, d0_, x[4] * sq, x[5] * sq))
 
-    res = _best_lsq(fun, x0)
+    res = _best_lsq(fun, x0, 2)
     x = res.x
     d0 = float(np.exp(x[3]))
     sq = np.sqrt(d0)
@@ -210,19 +210,22 @@ def _start_d1(num, wm, d0) -> float:
     return float(num[1] / wm**2) if wm > 0 else 0.0
 
 
-def _best_lsq(fun, x0):
+def _best_lsq(fun, x0, i_tau: int, starts=(0.0, 0.5, -0.5), max_nfev: int = 4000,
+              what: str = "Eq. 22 fit"):
+    """Levenberg-Marquardt from several starting values of the scaled ``tau`` (index ``i_tau``) --
+    the belt-damping zero is weakly determined -- keeping the lowest cost."""
     best = None
-    for tau0 in (0.0, 0.5, -0.5):
+    for tau0 in starts:
         x = x0.copy()
-        x[2] = tau0
+        x[i_tau] = tau0
         try:
-            r = least_squares(fun, x, method="lm", x_scale="jac", max_nfev=4000)
+            r = least_squares(fun, x, method="lm", x_scale="jac", max_nfev=max_nfev)
         except (ValueError, np.linalg.LinAlgError):
             continue
         if best is None or r.cost < best.cost:
             best = r
     if best is None or not np.all(np.isfinite(best.x)):
-        raise SolverError("Eq. 22 fit failed to converge (check the sweep's frequency range and coherence)")
+        raise SolverError(f"{what} failed to converge (check the sweeps' frequency range and coherence)")
     return best
 
 
@@ -282,18 +285,7 @@ def identify(carriage: FrfMeasurement, assembled: FrfMeasurement, m_n: float, m_
             _rel_residual(assembled, eq22_response(sa, wa_, za_, tau, d0_, d1_, d2_)),
         ])
 
-    res = None
-    for tau0 in (0.0, 0.6, -0.6):
-        x = x0.copy()
-        x[4] = tau0
-        try:
-            r = least_squares(fun, x, method="lm", x_scale="jac", max_nfev=6000)
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        if res is None or r.cost < res.cost:
-            res = r
-    if res is None or not np.all(np.isfinite(res.x)):
-        raise SolverError("joint identification fit failed to converge")
+    res = _best_lsq(fun, x0, 4, starts=(0.0, 0.6, -0.6), max_nfev=6000, what="joint identification fit")
     wc, zc, wa, za, tau, d0, d1, d2 = (float(v) for v in unpack(res.x))
     if not wa < wc:
         raise SolverError(

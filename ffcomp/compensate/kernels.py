@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.lpv import PoseMatrices, drive_filter_ss
+from ..model.lpv import PoseMatrices, drive_filter_ss, mech_arrays
 from .bspline import UniformBasis
 
 __all__ = [
@@ -30,20 +30,6 @@ __all__ = [
     "drive_tail_samples",
     "ltv_mech_response",
 ]
-
-
-def mech_arrays(mats: PoseMatrices) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous mechanics ``(A, B)``: shapes (P, 6, 6) and (P, 6, 6); inputs ``(u, u_dot)``."""
-    P = mats.n_poses
-    Minv = np.linalg.inv(mats.M)
-    A = np.zeros((P, 6, 6))
-    A[:, :3, 3:] = np.eye(3)
-    A[:, 3:, :3] = -Minv @ mats.K
-    A[:, 3:, 3:] = -Minv @ mats.C
-    B = np.zeros((P, 6, 6))
-    B[:, 3:, :3] = Minv * mats.B_k[:, None, :]
-    B[:, 3:, 3:] = Minv * mats.B_c[:, None, :]
-    return A, B
 
 
 def _phi1(z):

@@ -244,6 +244,24 @@ def frequency_response(model_or_mats, xyz_m=None, freq_hz=None, *, frame: str = 
 
 # --------------------------------------------------------------------------- state space
 
+def mech_arrays(mats: PoseMatrices) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous mechanics ``(A, B)`` at every pose: shapes (P, 6, 6) and (P, 6, 6).
+
+    State ``(q, q_dot)``, input ``(u, u_dot)`` (drive position and velocity):
+    ``M q'' + C q' + K q = B_c u' + B_k u``.
+    """
+    P = mats.n_poses
+    Minv = np.linalg.inv(mats.M)
+    A = np.zeros((P, 6, 6))
+    A[:, :3, 3:] = np.eye(3)
+    A[:, 3:, :3] = -Minv @ mats.K
+    A[:, 3:, 3:] = -Minv @ mats.C
+    B = np.zeros((P, 6, 6))
+    B[:, 3:, :3] = Minv * mats.B_k[:, None, :]
+    B[:, 3:, 3:] = Minv * mats.B_c[:, None, :]
+    return A, B
+
+
 def drive_filter_ss(d0, d1, d2, lag_s=0.0, delay_s=0.0, pade_order: int = 6):
     """State-space ``(a, b, c)`` of one drive filter ``F(s)`` (strictly proper, so ``d = 0``)."""
     a, b, c = _drive_filter_ss(float(d0), float(d1), float(d2), float(lag_s), float(delay_s), int(pade_order))

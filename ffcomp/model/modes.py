@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lpv import LpvModel, PoseMatrices
+from .lpv import LpvModel, PoseMatrices, mech_arrays
 
 __all__ = ["ModalSummary", "modes", "workspace_grid", "DriveMode", "drive_modes"]
 
@@ -67,12 +67,7 @@ class ModalSummary:
 def modes(model_or_mats, xyz_m=None) -> ModalSummary:
     """Coupled mechanical modes at each pose (batched eigen-decomposition)."""
     mats = model_or_mats if isinstance(model_or_mats, PoseMatrices) else model_or_mats.matrices(xyz_m)
-    P = mats.n_poses
-    Minv = np.linalg.inv(mats.M)
-    A = np.zeros((P, 6, 6))
-    A[:, :3, 3:] = np.eye(3)
-    A[:, 3:, :3] = -Minv @ mats.K
-    A[:, 3:, 3:] = -Minv @ mats.C
+    A, _ = mech_arrays(mats)
     lam, vec = np.linalg.eig(A)
     # keep one of each conjugate pair (Im > 0); overdamped real pairs keep the slower one
     order = np.argsort(-lam.imag, axis=1)[:, :3]

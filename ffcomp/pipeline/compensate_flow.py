@@ -21,7 +21,6 @@ import numpy as np
 
 from .. import __version__
 from ..compensate.inverse import InverseConfig
-from ..compensate.kernels import mech_arrays
 from ..compensate.ltv import simulate_piecewise
 from ..compensate.stream import StreamingInverse, carriage_derivatives
 from ..errors import GcodeError, SelfCheckError
@@ -30,7 +29,7 @@ from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
 from ..kinematics import forward, inverse, jacobian
-from ..model.lpv import LpvModel
+from ..model.lpv import LpvModel, mech_arrays
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M"]
 
