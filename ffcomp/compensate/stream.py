@@ -211,7 +211,7 @@ class FbsStream:
             solver.setup(P=sp.triu(sp.csc_matrix(G * sc * sc / gn), format="csc"), q=np.zeros(nJ),
                          A=sp.csc_matrix(Araw / rn[:, None]), l=-np.ones(len(rn)), u=np.ones(len(rn)),
                          verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5, max_iter=4000,
-                         polishing=True)
+                         polishing=False)
             entry = (solver, gn, rn)
             if pins.size == 0:
                 self._qp_cache[key] = entry
