@@ -72,14 +72,15 @@ def test_errors_leave_no_output_and_input_intact(tmp_path, profile):
     assert not list(tmp_path.glob(".ffcomp-*"))  # no temporary files left behind
 
 
-def test_cli_bare_form_stdout_and_exit_codes(capsys, tmp_path):
+def test_cli_bare_form_stdout_and_exit_codes(capfd, tmp_path):
     src = tmp_path / "zz.gcode"
     shutil.copy(SAMPLES / "stress_zigzag.gcode", src)
-    code, out, err = run(capsys, src, "-o", "-", "--no-progress", "--no-predict")
-    assert code == 0 and out.startswith("; ffcomp ")
-    code, out, err = run(capsys, SAMPLES / "malformed.gcode", "-o", tmp_path / "x.gcode")
+    code, out, err = run(capfd, src, "-o", "-", "--no-progress", "--no-predict")
+    assert code == 0 and out.startswith("; ffcomp ")  # the G-code and nothing else on stdout
+    assert all(ln.startswith((";", "G", "M", "S")) or not ln.strip() for ln in out.splitlines())
+    code, out, err = run(capfd, SAMPLES / "malformed.gcode", "-o", tmp_path / "x.gcode")
     assert code == 3 and "malformed.gcode:8" in err
-    code, _, err = run(capsys, src, "--format", "bogus")
+    code, _, err = run(capfd, src, "--format", "bogus")
     assert code != 0 and "--format" in err
 
 

@@ -188,6 +188,25 @@ def _count_lines(path: str) -> int:
 
 def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOptions = CompensateOptions(),
                     progress: Callable[[int, int], None] | None = None) -> CompensationSummary:
+    """See :func:`_compensate_file`; with ``out_path=None`` the G-code goes to stdout, and anything a
+    library prints at the C level meanwhile is sent to stderr so it cannot corrupt the G-code."""
+    if out_path is not None:
+        return _compensate_file(src, out_path, profile, opts, progress)
+    import sys
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        os.dup2(2, 1)
+        return _compensate_file(src, None, profile, opts, progress, stdout_fd=saved)
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOptions = CompensateOptions(),
+                     progress: Callable[[int, int], None] | None = None, stdout_fd: int | None = None
+                     ) -> CompensationSummary:
     """Compensate the G-code file ``src`` and write ``out_path`` atomically (``None``: stdout).
 
     On any error the output is not touched (and the source never is: with ``out_path == src`` the
@@ -307,11 +326,9 @@ def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOpt
         # success: move into place
         if out_path is None:
             import shutil
-            import sys
 
-            with open(final_tmp, encoding="utf-8") as f:
-                shutil.copyfileobj(f, sys.stdout)
-            sys.stdout.flush()
+            with open(final_tmp, "rb") as f, os.fdopen(os.dup(stdout_fd), "wb") as out:
+                shutil.copyfileobj(f, out)
         else:
             try:
                 os.chmod(final_tmp, os.stat(out_path).st_mode & 0o7777)
