@@ -25,9 +25,10 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     A : ndarray, shape (S, n, n)
         One matrix per segment (``S = ceil(N / seg)``).
     B : ndarray, shape (S, n, m)
-    w : ndarray, shape (N, m)
-        Inputs at the samples, linear in between.
-    x0 : ndarray, shape (n,), optional
+    w : ndarray, shape (N, m) or (N, m, R)
+        Inputs at the samples, linear in between; a third axis runs R simulations through the same
+        (once diagonalised) matrices.
+    x0 : ndarray, shape (n,) or (n, R), optional
         Initial state (zero by default).
 
     Returns
@@ -37,7 +38,9 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     x_end : ndarray, shape (n,)
         State one sample after the last (to continue the simulation).
     """
-    N, m_in = w.shape
+    one = w.ndim == 2  # (N, m); several runs through the same matrices: (N, m, R)
+    w = w[:, :, None] if one else w
+    N, m_in, R = w.shape
     S = -(-N // seg)
     if A.shape[0] != S:
         raise ValueError(f"need {S} segment matrices for {N} samples in segments of {seg}, got {A.shape[0]}")
@@ -47,28 +50,33 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     # inputs per segment incl. the first sample of the next one (held at the end of the data)
     wp = np.concatenate([w, np.repeat(w[-1:], S * seg + 1 - N, 0)])
     idx = np.arange(S)[:, None] * seg + np.arange(seg + 1)[None, :]
-    ws = wp[idx]  # (S, seg+1, m)
+    ws = wp[idx]  # (S, seg+1, m, R)
     # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1
-    v = np.einsum("snm,skm->skn", foh.g1 - foh.g2, ws[:, :-1]) + np.einsum("snm,skm->skn", foh.g2, ws[:, 1:])
+    v = np.einsum("snm,skmr->sknr", foh.g1 - foh.g2, ws[:, :-1]) + np.einsum("snm,skmr->sknr", foh.g2, ws[:, 1:])
     e = np.exp(foh.lam * dt_s)  # (S, n)
     # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j, k = 0..seg
     powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n)
-    zs = np.zeros((S, seg + 1, n), complex)
+    zs = np.zeros((S, seg + 1, n, R), complex)
     for k in range(1, seg + 1):
-        zs[:, k] = zs[:, k - 1] * e + v[:, k - 1]
+        zs[:, k] = zs[:, k - 1] * e[:, :, None] + v[:, k - 1]
     # hand the physical state from segment to segment
-    xs = np.empty((S, n))
-    x = np.zeros(n) if x0 is None else np.asarray(x0, float)
+    xs = np.empty((S, n, R))
+    if x0 is None:
+        x = np.zeros((n, R))
+    else:
+        x = np.asarray(x0, float).reshape(n, -1) * np.ones((1, R))
     Ve = foh.V
-    for s in range(S):
-        xs[s] = x
-        z0 = Vinv[s] @ x
-        x = (Ve[s] @ (powers[s, seg] * z0 + zs[s, seg])).real
-    z0 = np.einsum("snm,sm->sn", Vinv, xs)  # modal start states
-    Z = powers * z0[:, None, :] + zs  # (S, seg+1, n)
-    X = np.einsum("snm,skm->skn", Ve, Z[:, :seg]).real.reshape(S * seg, n)
+    for s_ in range(S):
+        xs[s_] = x
+        z0 = Vinv[s_] @ x
+        x = (Ve[s_] @ (powers[s_, seg][:, None] * z0 + zs[s_, seg])).real
+    z0 = np.einsum("snm,smr->snr", Vinv, xs)  # modal start states
+    Z = powers[..., None] * z0[:, None] + zs  # (S, seg+1, n, R)
+    X = np.einsum("snm,skmr->sknr", Ve, Z[:, :seg]).real.reshape(S * seg, n, R)
     k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
     x_end = (Ve[-1] @ Z[-1, k_end]).real
+    if one:
+        return X[:N, :, 0], x_end[:, 0]
     return X[:N], x_end
 
 

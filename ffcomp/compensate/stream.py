@@ -76,6 +76,7 @@ class FbsStream:
         self.racc = np.zeros((0, self.C))
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self._qp_cache: dict = {}
+        self._rows_cache: dict = {}
         self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
         self.w0 = 0
         self.coef = np.zeros((0, self.n_in * self.C))  # committed coefficients of bases [cj0, cj0 + len)
@@ -173,15 +174,19 @@ class FbsStream:
 
         m, dt = self.m, self.basis.dt_s
         D, V, Acc = self.bounds
-        r = np.arange(0, rows, self.cstride)
-        B0, B1, B2 = self._basis_rows(np.arange(nJ) * m, r)
-        live = np.abs(B0).sum(1) + np.abs(B2).sum(1) > 0  # rows the new bases can still change
-        r, B0, B1, B2 = r[live], B0[live], B1[live], B2[live]
-        # committed bases still acting on these rows
+        # committed bases still acting on the window's rows
         sup_j = self.basis.support // m + 1
         jp = np.arange(max(self.cj0, self.w0 // m - sup_j), self.w0 // m)
         cp = self.coef[jp - self.cj0] if len(jp) else np.zeros((0, self.C))
-        P0, P1, P2 = self._basis_rows(jp * m - self.w0, r) if len(jp) else (np.zeros((len(r), 0)),) * 3
+        ckey = (nJ, rows, len(jp))
+        if ckey not in self._rows_cache:  # the same for every full window
+            r = np.arange(0, rows, self.cstride)
+            B0, B1, B2 = self._basis_rows(np.arange(nJ) * m, r)
+            live = np.abs(B0).sum(1) + np.abs(B2).sum(1) > 0  # rows the new bases can still change
+            r, B0, B1, B2 = r[live], B0[live], B1[live], B2[live]
+            P = self._basis_rows(np.arange(-len(jp), 0) * m, r) if len(jp) else (np.zeros((len(r), 0)),) * 3
+            self._rows_cache[ckey] = (r, B0, B1, B2, *P)
+        r, B0, B1, B2, P0, P1, P2 = self._rows_cache[ckey]
         e0, e1, e2 = P0 @ cp, P1 @ cp, P2 @ cp  # (R, C)
         vref, aref = self.rvel[a + r], self.racc[a + r]
         val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref

@@ -105,11 +105,12 @@ class CompensationSummary:
 
 
 class _Predictor:
-    """Running LPV prediction of the nozzle error of a command stream.
+    """Running LPV prediction of the nozzle error of the reference and of the command, together.
 
     The drive filters (LTI, per tower) run as recursive filters; the coupled mechanics run
     piecewise frozen (pose updated every ``seg`` samples) with the drive position and velocity as
-    inputs.  Same model as :func:`ffcomp.compensate.predict.predict_lpv`, split where it is exact.
+    inputs, both streams through the same diagonalised matrices.  Same model as
+    :func:`ffcomp.compensate.predict.predict_lpv`, split where it is exact.
     """
 
     def __init__(self, model: LpvModel, dt_s: float, seg: int = 100):
@@ -117,12 +118,12 @@ class _Predictor:
 
         self.model, self.dt, self.seg = model, dt_s, seg
         mats = model.matrices(np.zeros((1, 3)) + [0, 0, model.geometry.z_min_m], check=False)
-        self._mk = lambda: [(_DriveFilter(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], dt_s),
-                             _DriveFilter(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], dt_s,
-                                          derivative=True)) for i in range(3)]
-        self.sq = 0.0
+        d = [(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i]) for i in range(3)]
+        self._mk = lambda: [[(_DriveFilter(*d[i], dt_s), _DriveFilter(*d[i], dt_s, derivative=True))
+                             for i in range(3)] for _ in range(2)]
+        self.sq = np.zeros(2)
         self.n = 0
-        self.mx = 0.0
+        self.mx = np.zeros(2)
         self.reset()
 
     def reset(self):
@@ -131,14 +132,18 @@ class _Predictor:
         self.filters = self._mk()
 
     def push(self, q_cmd, q_ref, xyz_ref):
+        """Predict both the command (run 0) and the uncompensated reference (run 1)."""
         if len(q_cmd) == 0:
             return
         if self.x is None:
-            self.q0 = q_cmd[0].copy()
-        rel = q_cmd - self.q0
-        u = np.stack([f(rel[:, i]) for i, (f, _) in enumerate(self.filters)], 1)
-        ud = np.stack([g(rel[:, i]) for i, (_, g) in enumerate(self.filters)], 1)
-        w = np.hstack([u, ud])
+            self.q0 = q_ref[0].copy()
+        ws = []
+        for r, q in enumerate((q_cmd, q_ref)):
+            rel = q - self.q0
+            f = self.filters[r]
+            ws.append(np.hstack([np.stack([f[i][0](rel[:, i]) for i in range(3)], 1),
+                                 np.stack([f[i][1](rel[:, i]) for i in range(3)], 1)]))
+        w = np.stack(ws, axis=2)  # (N, 6, 2)
         prefix = 0
         if self.x is not None:
             w = np.concatenate([self.w_last, w])
@@ -147,22 +152,19 @@ class _Predictor:
         S = -(-len(w) // self.seg)
         idx = np.minimum(np.arange(S) * self.seg + self.seg // 2, len(X) - 1)
         A, B = mech_arrays(self.model.matrices(X[idx], check=False))
-        if self.x is None:
-            self.x = np.zeros(6)
         xs, _ = simulate_piecewise(A, B, w, self.dt, self.seg, x0=self.x)
         self.x = xs[-1]
         self.w_last = w[-1:]
-        q = xs[prefix:, :3] + self.q0
         J = jacobian(self.model.geometry, xyz_ref)
-        e = np.einsum("nij,nj->ni", J, q - q_ref)
-        en = np.sqrt(np.sum(e * e, 1))
-        self.sq += float(np.sum(en * en))
-        self.n += len(en)
-        self.mx = max(self.mx, float(en.max()))
+        for r in range(2):
+            e = np.einsum("nij,nj->ni", J, xs[prefix:, :3, r] + self.q0 - q_ref)
+            en = np.sqrt(np.sum(e * e, 1))
+            self.sq[r] += float(np.sum(en * en))
+            self.mx[r] = max(self.mx[r], float(en.max()))
+        self.n += len(q_cmd)
 
-    @property
-    def rms_um(self) -> float:
-        return math.sqrt(self.sq / max(self.n, 1)) * 1e6
+    def rms_um(self, r: int) -> float:
+        return math.sqrt(self.sq[r] / max(self.n, 1)) * 1e6
 
 
 def _refuse_compensated(path: str) -> None:
@@ -241,8 +243,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
                                  max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s)
-            pred_before = _Predictor(model, dt) if opts.predict else None
-            pred_after = _Predictor(model, dt) if opts.predict else None
+            pred = _Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
             a_peak = 0.0
@@ -284,12 +285,10 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
                 if new_stream:  # after a homing the machine stands at the new stream's first point
                     writer.last_pt = None
-                if pred_after is not None:
+                if pred is not None:
                     if new_stream:
-                        pred_after.reset()
-                        pred_before.reset()
-                    pred_after.push(qc, meta["q"], meta["xyz"])
-                    pred_before.push(meta["q"], meta["q"], meta["xyz"])
+                        pred.reset()
+                    pred.push(qc, meta["q"], meta["xyz"])
                 writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"])
                 k_written += len(qc)
                 last_qc = qc[-1].copy()
@@ -301,9 +300,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer.finish()
         summ.warnings = plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
         summ.segments = writer.stats.segments
-        if pred_after is not None and pred_after.n:
-            summ.rms_before_um, summ.max_before_um = pred_before.rms_um, pred_before.mx * 1e6
-            summ.rms_after_um, summ.max_after_um = pred_after.rms_um, pred_after.mx * 1e6
+        if pred is not None and pred.n:
+            summ.rms_before_um, summ.max_before_um = pred.rms_um(1), pred.mx[1] * 1e6
+            summ.rms_after_um, summ.max_after_um = pred.rms_um(0), pred.mx[0] * 1e6
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = a_peak * 1e3
