@@ -1,0 +1,97 @@
+"""Benchmark: what the G-code output options cost, the G-code output on the simulator, and the floor
+that step quantisation sets.  Prints the figures README quotes.
+
+Run: ``python benchmarks/bench_options.py`` (about two minutes).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def options_table() -> None:
+    src = ROOT / "samples" / "gcode" / "stress_square_off100.gcode"
+    print(f"G-code output options on {src.name} (LPV-model prediction, um):\n")
+    print("| option | RMS before | RMS after | max after | self-check max | catch-up max |")
+    print("|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as td:
+        for args in (["--z-mode", "keep"], ["--z-mode", "hold"], ["--pin-holds"]):
+            r = subprocess.run([sys.executable, "-m", "ffcomp", str(src), "-o", f"{td}/o.gcode", "--json",
+                                "--no-progress", *args], capture_output=True, text=True, check=True)
+            d = json.loads(r.stdout)
+            print(f"| {' '.join(args)} | {d['rms_before_um']:.1f} | {d['rms_after_um']:.2f} | {d['max_after_um']:.1f} "
+                  f"| {d['self_check_max_um']:.1f} | {d['self_check_catch_up_max_um']:.1f} |")
+
+
+def gcode_on_simulator() -> None:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from test_compensate_sim import SQUARE_100
+
+    from ffcomp.compensate.inverse import InverseConfig, invert
+    from ffcomp.gcode.sampler import concat_blocks, sample_gcode
+    from ffcomp.model import LpvModel
+    from ffcomp.pipeline.compensate_flow import compensate_file, inv_pre_samples
+    from ffcomp.profile import default_profile
+    from ffcomp.sim.metrics import evaluate
+    from ffcomp.sim.plant import DeltaPlant
+
+    profile = default_profile()
+    model = LpvModel.from_profile(profile)
+    with tempfile.TemporaryDirectory() as td:
+        src = Path(td) / "square100.gcode"
+        src.write_text("\n".join(SQUARE_100) + "\n")
+        ref = concat_blocks(sample_gcode(str(src), profile, overlap=0))
+        dt = ref.t_s[1] - ref.t_s[0]
+        n_pre = inv_pre_samples(InverseConfig(), dt)
+        X = np.vstack([np.repeat(ref.xyz_m[:1], n_pre, 0), ref.xyz_m])
+        q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
+        t = np.arange(len(q)) * dt
+        ideal = invert(model, q, X, dt).q_cmd
+        out = Path(td) / "out.gcode"
+        compensate_file(str(src), str(out), profile)
+        got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True)).q_m[:len(q)]
+        got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
+    sim = DeltaPlant.from_profile(profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
+    reps = [evaluate(t, X, sim.xyz_m[r]) for r in range(3)]
+    print("\nG-code output re-planned and simulated (square 100 mm out, 10,000 mm/s^2), um:\n")
+    print("| commands | lag-aligned RMS | contour RMS |\n|---|---|---|")
+    for name, r in zip(("none", "exact compensated", "G-code output"), reps):
+        print(f"| {name} | {r.lag.rms_norm_um:.2f} | {r.contour.rms_norm_um:.2f} |")
+    keep = (reps[0].lag.rms_norm_um - reps[2].lag.rms_norm_um) / (reps[0].lag.rms_norm_um - reps[1].lag.rms_norm_um)
+    print(f"\nthe G-code output keeps {keep * 100:.1f} % of the exact commands' lag-aligned reduction")
+
+
+def quantisation_floor() -> None:
+    from ffcomp.profile import default_profile
+    from ffcomp.sim.bench import bench_cases, load_providers, run_case
+    from ffcomp.sim.plant import DeltaPlant
+
+    p = default_profile()
+    load_providers()
+    plant = DeltaPlant.from_profile(p)
+    print(f"\nStep quantisation at {p.limits.steps_per_mm:g} steps/mm (lag-aligned RMS / contour RMS, um):\n")
+    print("| case | none | zvd-centre | lpv | lpv, exact commands |\n|---|---|---|---|---|")
+    for traj in bench_cases(p, quick=True):
+        rq = run_case(plant, p, traj, ["none", "zvd-centre", "lpv"], quantize=True).reports
+        re = run_case(plant, p, traj, ["lpv"], quantize=False).reports[0]
+        cells = [f"{r.lag.rms_norm_um:.1f} / {r.contour.rms_norm_um:.1f}" for r in rq]
+        print(f"| {traj.name} | " + " | ".join(cells) + f" | {re.lag.rms_norm_um:.2f} / {re.contour.rms_norm_um:.2f} |")
+
+
+if __name__ == "__main__":
+    options_table()
+    gcode_on_simulator()
+    quantisation_floor()
