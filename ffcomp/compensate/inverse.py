@@ -21,10 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.lpv import LpvModel, PoseMatrices, drive_filter_ss
+from ..model.lpv import LpvModel, PoseMatrices
 from .bspline import UniformBasis
 from .fbs import FbsConfig, fbs_solve
 from .kernels import (
+    DriveFilter,
     drive_kernel,
     drive_tail_samples,
     ltv_mech_response,
@@ -197,7 +198,7 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
         lag, dly = mats_all.lag_s[i], mats_all.delay_s[i]
         L_b = basis.support + drive_tail_samples(d0, d2, lag, dt_s)
         k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
-        u_ref = drive_response(d0, d1, d2, lag, dly, q[:, i] - q[0, i], dt_s) + q[0, i]
+        u_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s)(q[:, i] - q[0, i]) + q[0, i]
 
         def dk(j0, j1, k=k):
             return np.broadcast_to(k[None, None, :, None], (j1 - j0, 1, len(k), 1))
@@ -324,18 +325,6 @@ def _take(mats: PoseMatrices, idx) -> PoseMatrices:
     """Pose matrices at a subset of the poses."""
     return mats.replace(xyz_m=mats.xyz_m[idx], q_m=mats.q_m[idx], J=mats.J[idx], M=mats.M[idx], C=mats.C[idx],
                         K=mats.K[idx], B_c=mats.B_c[idx], B_k=mats.B_k[idx])
-
-
-def drive_response(d0, d1, d2, lag_s, delay_s, x: np.ndarray, dt_s: float, pade_order: int = 6) -> np.ndarray:
-    """The drive filter's output for input samples ``x`` (linear in between), from rest at 0."""
-    from scipy.signal import cont2discrete, lfilter
-
-    a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order)
-    ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], np.zeros((1, 1))), dt_s, method="foh")
-    from scipy.signal import ss2tf
-
-    num, den = ss2tf(ad, bd, cd, dd)
-    return lfilter(num[0], den, x)
 
 
 def _ltv_kernel_fn(model: LpvModel, X: np.ndarray, basis: UniformBasis, L: int):

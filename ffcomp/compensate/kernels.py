@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import cont2discrete, lfilter, lfilter_zi, ss2tf
 
 from ..model.lpv import PoseMatrices, drive_filter_ss, mech_arrays
 from .bspline import UniformBasis
@@ -29,6 +30,7 @@ __all__ = [
     "mech_tail_samples",
     "drive_tail_samples",
     "ltv_mech_response",
+    "DriveFilter",
 ]
 
 
@@ -174,3 +176,28 @@ def ltv_mech_response(mats_per_sample: PoseMatrices, w: np.ndarray, dt_s: float)
         if k + 1 < N:
             x = Phi[k] @ x + G1[k] @ w[k] + G2[k] @ (w[k + 1] - w[k])
     return out
+
+
+class DriveFilter:
+    """A tower's drive filter applied to a stream of samples (first-order hold, state carried).
+
+    ``derivative=True`` gives the drive velocity ``s F(s)`` instead of the drive position.
+    """
+
+    def __init__(self, d0, d1, d2, lag_s, delay_s, dt_s, derivative: bool = False):
+        a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s)
+        d = np.zeros((1, 1))
+        if derivative:  # y' = c x' = c a x + c b u
+            c, d = c @ a, np.array([[c @ b]])
+        ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], d), dt_s, method="foh")
+        num, den = ss2tf(ad, bd, cd, dd)
+        self.b, self.a = num[0], den
+        self.zi = None
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        if self.zi is None:
+            self.zi = lfilter_zi(self.b, self.a) * 0.0  # at rest at 0 (inputs are relative)
+        if len(x) == 0:  # scipy's lfilter returns an uninitialised state for empty input
+            return np.zeros(0)
+        y, self.zi = lfilter(self.b, self.a, x, zi=self.zi)
+        return y

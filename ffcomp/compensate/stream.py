@@ -14,16 +14,23 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.signal import cont2discrete, lfilter, lfilter_zi, ss2tf
 
 from ..errors import SolverError
 from ..kinematics import jacobian, jacobian_dot
 from ..linalg3 import inv3
-from ..model.lpv import LpvModel, drive_filter_ss
+from ..model.lpv import LpvModel
 from .bspline import UniformBasis
 from .fbs import _dense_basis
 from .inverse import InverseConfig, _round_to, inverse_dynamics_force
-from .kernels import drive_kernel, drive_tail_samples, mech_arrays, mech_kernels, mech_tail_samples, modal_foh
+from .kernels import (
+    DriveFilter,
+    drive_kernel,
+    drive_tail_samples,
+    mech_arrays,
+    mech_kernels,
+    mech_tail_samples,
+    modal_foh,
+)
 from .ltv import simulate_lti
 
 __all__ = ["FbsStream", "StreamingInverse", "carriage_derivatives"]
@@ -317,31 +324,6 @@ def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
     return qd, qdd
 
 
-class _DriveFilter:
-    """A tower's drive filter applied to a stream of samples (first-order hold, state carried).
-
-    ``derivative=True`` gives the drive velocity ``s F(s)`` instead of the drive position.
-    """
-
-    def __init__(self, d0, d1, d2, lag_s, delay_s, dt_s, derivative: bool = False):
-        a, b, c = drive_filter_ss(d0, d1, d2, lag_s, delay_s)
-        d = np.zeros((1, 1))
-        if derivative:  # y' = c x' = c a x + c b u
-            c, d = c @ a, np.array([[c @ b]])
-        ad, bd, cd, dd, _ = cont2discrete((a, b[:, None], c[None, :], d), dt_s, method="foh")
-        num, den = ss2tf(ad, bd, cd, dd)
-        self.b, self.a = num[0], den
-        self.zi = None
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        if self.zi is None:
-            self.zi = lfilter_zi(self.b, self.a) * 0.0  # at rest at 0 (inputs are relative)
-        if len(x) == 0:  # scipy's lfilter returns an uninitialised state for empty input
-            return np.zeros(0)
-        y, self.zi = lfilter(self.b, self.a, x, zi=self.zi)
-        return y
-
-
 class StreamingInverse:
     """Reference samples in, compensated carriage commands out, in bounded memory.
 
@@ -395,7 +377,7 @@ class StreamingInverse:
             self.drive.append(FbsStream(kb[None, :, None], self.basis, dwin, dadv, cfg.reg,
                                         channels=3 if self.shared_drive else 1))
         for i in range(3):
-            self.dfilt.append(_DriveFilter(*params[i], dt))
+            self.dfilt.append(DriveFilter(*params[i], dt))
         if cfg.bounds is not None:
             for d in self.drive:
                 d.set_bounds(*cfg.bounds)

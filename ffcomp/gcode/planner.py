@@ -100,7 +100,11 @@ def plan_moves(records: Iterable[GcodeLine], profile, *, firmware: str | None = 
     **kw
         Passed to the planner class (e.g. ``max_extrude_only_distance_mm``, ``block_buffer_size``).
     """
-    p = make_planner(profile, firmware=firmware, path=path, **kw)
+    return _run(make_planner(profile, firmware=firmware, path=path, **kw), records)
+
+
+def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
+    """Feed parsed lines to planner ``p``; yield its moves as they become final."""
     ops = _OPS
     for line in records:
         op = line.op
@@ -160,17 +164,7 @@ class GcodePlan:
         if self._used:
             raise RuntimeError("a GcodePlan can be iterated only once (it streams its source)")
         self._used = True
-        p = self.planner
-        ops = _OPS
-        for line in self.parser:
-            op = line.op
-            if op is None:
-                continue
-            ops[type(op)](p, op, line)
-            if p.out:
-                yield from p.take()
-        p.finish()
-        yield from p.take()
+        yield from _run(self.planner, self.parser)
 
 
 def plan_gcode(source, profile, **kw) -> GcodePlan:

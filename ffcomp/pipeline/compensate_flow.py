@@ -21,6 +21,7 @@ import numpy as np
 
 from .. import __version__
 from ..compensate.inverse import InverseConfig
+from ..compensate.kernels import DriveFilter
 from ..compensate.ltv import simulate_piecewise
 from ..compensate.stream import StreamingInverse, carriage_derivatives
 from ..errors import GcodeError, SelfCheckError
@@ -114,12 +115,10 @@ class _Predictor:
     """
 
     def __init__(self, model: LpvModel, dt_s: float, seg: int = 100):
-        from ..compensate.stream import _DriveFilter
-
         self.model, self.dt, self.seg = model, dt_s, seg
         mats = model.matrices(np.zeros((1, 3)) + [0, 0, model.geometry.z_min_m], check=False)
         d = [(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i]) for i in range(3)]
-        self._mk = lambda: [[(_DriveFilter(*d[i], dt_s), _DriveFilter(*d[i], dt_s, derivative=True))
+        self._mk = lambda: [[(DriveFilter(*d[i], dt_s), DriveFilter(*d[i], dt_s, derivative=True))
                              for i in range(3)] for _ in range(2)]
         self.sq = np.zeros(2)
         self.n = 0
@@ -246,11 +245,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             pred = _Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
-            a_peak = 0.0
-            v_prev = None
 
             def emit(qc, meta):
-                nonlocal k_written, a_peak, v_prev, last_qc
+                nonlocal k_written, last_qc
                 xyz = forward(geom, qc)
                 if np.any(~np.isfinite(xyz)):
                     bad = int(np.argmax(~np.isfinite(xyz).all(1)))
@@ -272,15 +269,6 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                     qc[fix] = inverse(geom, xyz[fix])
                 summ.max_correction_um = max(summ.max_correction_um,
                                              float(np.max(np.abs(qc - meta["q"]))) * 1e6)
-                # peak acceleration of the intended nozzle path (for the header)
-                v = np.diff(xyz, axis=0) / dt
-                if v_prev is not None and len(v):
-                    v = np.vstack([v_prev, v])
-                if len(v) > 2:
-                    acc = np.linalg.norm(np.diff(v, axis=0), axis=1) / dt
-                    a_peak = max(a_peak, float(np.percentile(acc, 99.9)))
-                if len(v):
-                    v_prev = v[-1:]
                 qf.write(qc.astype(np.float32).tobytes())
                 new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
                 if new_stream:  # after a homing the machine stands at the new stream's first point
@@ -305,8 +293,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             summ.rms_after_um, summ.max_after_um = pred.rms_um(0), pred.mx[0] * 1e6
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
-        summ.peak_command_accel_mm_s2 = a_peak * 1e3
-        head, foot = _header(profile, opts, src, accel, writer.stats)
+        summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
+        head, foot = _header(profile, opts, src, accel)
         final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:
@@ -427,14 +415,24 @@ def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
     return _round_to(int(round(icfg.pre_s / dt)), icfg.knot_samples)
 
 
-def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
-    """Samples whose planned move is an extruder-only move or a dwell (the nozzle stands still)."""
+def _moves_where(move_index: np.ndarray, moves: dict, pred) -> np.ndarray:
+    """Mask of the samples whose planned move satisfies ``pred``."""
     out = np.zeros(len(move_index), bool)
     for mi in np.unique(move_index):
         mv = moves.get(int(mi))
-        if mv is not None and mv.kind != "move":
+        if mv is not None and pred(mv):
             out[move_index == mi] = True
     return out
+
+
+def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move is an extruder-only move or a dwell (the nozzle stands still)."""
+    return _moves_where(move_index, moves, lambda mv: mv.kind != "move")
+
+
+def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move keeps z constant."""
+    return _moves_where(move_index, moves, lambda mv: abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9)
 
 
 def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:
@@ -462,16 +460,6 @@ def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.nda
     return bad | far
 
 
-def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
-    """Samples whose planned move keeps z constant."""
-    out = np.zeros(len(move_index), bool)
-    for mi in np.unique(move_index):
-        mv = moves.get(int(mi))
-        if mv is not None and abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9:
-            out[move_index == mi] = True
-    return out
-
-
 class _Fifo:
     """Per-sample metadata waiting for its compensated command."""
 
@@ -496,7 +484,7 @@ def header_accel(profile, opts: CompensateOptions) -> float:
     return float(max(1e5, opts.accel_factor * profile.limits.max_accel_mm_s2))
 
 
-def _header(profile, opts: CompensateOptions, src: str, accel: float, stats) -> tuple[list[str], list[str]]:
+def _header(profile, opts: CompensateOptions, src: str, accel: float) -> tuple[list[str], list[str]]:
     lim = profile.limits
     settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
                 f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
