@@ -17,8 +17,6 @@ import sys  # noqa: E402
 import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -40,38 +38,20 @@ def gcode_on_simulator() -> None:
     sys.path.insert(0, str(ROOT / "tests"))
     from test_compensate_sim import SQUARE_100
 
-    from ffcomp.compensate.inverse import InverseConfig, invert
-    from ffcomp.gcode.sampler import concat_blocks, sample_gcode
-    from ffcomp.model import LpvModel
-    from ffcomp.pipeline.compensate_flow import compensate_file, inv_pre_samples
+    from ffcomp.pipeline.output_check import check_gcode_output
     from ffcomp.profile import default_profile
-    from ffcomp.sim.metrics import evaluate
-    from ffcomp.sim.plant import DeltaPlant
 
-    profile = default_profile()
-    model = LpvModel.from_profile(profile)
     with tempfile.TemporaryDirectory() as td:
         src = Path(td) / "square100.gcode"
         src.write_text("\n".join(SQUARE_100) + "\n")
-        ref = concat_blocks(sample_gcode(str(src), profile, overlap=0))
-        dt = ref.t_s[1] - ref.t_s[0]
-        n_pre = inv_pre_samples(InverseConfig(), dt)
-        X = np.vstack([np.repeat(ref.xyz_m[:1], n_pre, 0), ref.xyz_m])
-        q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
-        t = np.arange(len(q)) * dt
-        ideal = invert(model, q, X, dt).q_cmd
-        out = Path(td) / "out.gcode"
-        compensate_file(str(src), str(out), profile)
-        got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True)).q_m[:len(q)]
-        got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
-    sim = DeltaPlant.from_profile(profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
-    reps = [evaluate(t, X, sim.xyz_m[r]) for r in range(3)]
+        chk = check_gcode_output(default_profile(), src, Path(td) / "out.gcode")
     print("\nG-code output re-planned and simulated (square 100 mm out, 10,000 mm/s^2), um:\n")
     print("| commands | lag-aligned RMS | contour RMS |\n|---|---|---|")
-    for name, r in zip(("none", "exact compensated", "G-code output"), reps):
+    for name, r in (("none", chk.none), ("exact compensated", chk.exact), ("G-code output", chk.gcode)):
         print(f"| {name} | {r.lag.rms_norm_um:.2f} | {r.contour.rms_norm_um:.2f} |")
-    keep = (reps[0].lag.rms_norm_um - reps[2].lag.rms_norm_um) / (reps[0].lag.rms_norm_um - reps[1].lag.rms_norm_um)
-    print(f"\nthe G-code output keeps {keep * 100:.1f} % of the exact commands' lag-aligned reduction")
+    print(f"\nthe G-code output keeps {chk.kept('lag') * 100:.1f} % of the exact commands' lag-aligned reduction "
+          f"and {chk.kept('contour') * 100:.1f} % of the contour reduction; re-planned timing drift "
+          f"{chk.drift_s * 1e3:.3f} ms over {chk.summary.print_time_s:.2f} s")
 
 
 def quantisation_floor() -> None:
