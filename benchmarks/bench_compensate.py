@@ -83,14 +83,56 @@ def variants_table() -> list[str]:
     return rows
 
 
+def profile_shares(path: Path, n_lines: int = 12000) -> None:
+    """Where the time goes: cProfile over the first ``n_lines`` lines, shares of the main stages."""
+    import cProfile
+    import pstats
+
+    from ffcomp.pipeline.compensate_flow import compensate_file
+    from ffcomp.profile import default_profile
+
+    part = Path("/tmp") / f"bench_profile_{os.getpid()}.gcode"
+    with open(path) as f, open(part, "w") as g:
+        for i, ln in enumerate(f):
+            if i >= n_lines:
+                break
+            g.write(ln)
+    prof = cProfile.Profile()
+    prof.runcall(compensate_file, str(part), str(part.with_suffix(".out.gcode")), default_profile())
+    st = pstats.Stats(prof)
+    import inspect
+
+    from ffcomp.compensate.stream import StreamingInverse
+    from ffcomp.gcode.writer import GcodeWriter
+    from ffcomp.pipeline import compensate_flow as cf
+
+    def key(fn):
+        return (inspect.getsourcefile(fn), inspect.getsourcelines(fn)[1], fn.__name__)
+
+    cum = {k: v[3] for k, v in st.stats.items()}
+    total = cum[key(cf._compensate_file)]
+    stages = {"G-code writer": key(GcodeWriter.feed), "streaming inverse": key(StreamingInverse.push),
+              "self-check re-plan": key(cf._self_check), "LPV prediction for the summary": key(cf._Predictor.push)}
+    print(f"\nTime profile of the first {n_lines:,} lines ({total:.1f} s under cProfile):\n")
+    print("| part | share |\n|---|---|")
+    for name, key in stages.items():
+        print(f"| {name} | {cum.get(key, 0.0) / total * 100:.0f} % |")
+    for p_ in (part, part.with_suffix(".out.gcode")):
+        p_.unlink(missing_ok=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--file", type=Path, default=BIG)
     ap.add_argument("--quick", action="store_true", help="first 20,000 lines of the file only")
+    ap.add_argument("--profile", action="store_true", help="only the time profile of the first 12,000 lines")
     a = ap.parse_args()
     path = a.file
     if not path.exists() and path == BIG:
         subprocess.run([sys.executable, str(ROOT / "samples" / "make_samples.py"), "--large"], check=True)
+    if a.profile:
+        profile_shares(path)
+        return
     if a.quick:
         q = Path("/tmp/bench_quick.gcode")
         with open(path) as f, open(q, "w") as g:
