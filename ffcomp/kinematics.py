@@ -29,6 +29,8 @@ __all__ = [
     "forward",
     "jacobian",
     "jacobian_dot",
+    "carriage_rates",
+    "velocity_product",
     "joint_velocity",
     "reachable",
     "check_reachable",
@@ -182,8 +184,9 @@ def _s_matrix(geom: DeltaGeometry, xyz: np.ndarray, q: np.ndarray) -> np.ndarray
     return S
 
 
-def jacobian(geom: DeltaGeometry, xyz) -> np.ndarray:
-    """Jacobian ``J = dX/dq`` at nozzle positions (Eq. 12).
+def jacobian(geom: DeltaGeometry, xyz, *, q=None) -> np.ndarray:
+    """Jacobian ``J = dX/dq`` at nozzle positions (Eq. 12); ``q``, the carriage heights there, may
+    be passed when known.
 
     Returns
     -------
@@ -191,7 +194,7 @@ def jacobian(geom: DeltaGeometry, xyz) -> np.ndarray:
         Dimensionless.
     """
     xyz_a, single = _as_poses(xyz)
-    q = inverse(geom, xyz_a)
+    q = inverse(geom, xyz_a) if q is None else np.atleast_2d(q)
     S = _s_matrix(geom, xyz_a, q)
     h = q - xyz_a[:, 2:3] - geom.effector_offset_z_m  # = s_i^T p with p = (0, 0, -1)
     J = -inv3(S) * h[:, None, :]
@@ -236,6 +239,55 @@ def jacobian_dot(geom: DeltaGeometry, xyz, xyz_dot) -> np.ndarray:
     rhs = Sd @ J + K[:, :, None] * np.eye(3)[None]
     Jd = -Sinv @ rhs
     return Jd[0] if single else Jd
+
+
+def carriage_rates(geom: DeltaGeometry, xyz, xyz_dot, xyz_ddot) -> tuple[np.ndarray, np.ndarray]:
+    """Carriage velocities and accelerations of a nozzle motion, in closed form.
+
+    Differentiating the arm constraints ``|s_i|^2 = L_i^2`` (``s_i`` of Eq. 7) once and twice gives
+    ``q_dot_i = s_i . X_dot / s_iz`` and ``q_ddot_i = (s_i . X_ddot + |s_i_dot|^2) / s_iz`` with
+    ``s_i_dot = X_dot - e_z q_dot_i``: the same as ``J^-1 X_dot`` and ``J^-1 (X_ddot - J_dot
+    q_dot)`` without a matrix inverse.
+
+    Parameters
+    ----------
+    xyz, xyz_dot, xyz_ddot : array_like, shape (N, 3)
+        Nozzle positions (m), velocities (m/s) and accelerations (m/s^2).
+
+    Returns
+    -------
+    qd, qdd : ndarray, shape (N, 3)
+        Carriage velocities (m/s) and accelerations (m/s^2).
+    """
+    X, _ = _as_poses(xyz)
+    v = np.atleast_2d(np.asarray(xyz_dot, float))
+    a = np.atleast_2d(np.asarray(xyz_ddot, float))
+    q = inverse(geom, X)
+    S = _s_matrix(geom, X, q)
+    sz = S[:, :, 2]
+    qd = np.einsum("nij,nj->ni", S, v) / sz
+    sd2 = np.sum(v * v, axis=1)[:, None] - 2.0 * v[:, 2:3] * qd + qd * qd  # |X_dot - e_z q_dot_i|^2
+    qdd = (np.einsum("nij,nj->ni", S, a) + sd2) / sz
+    return qd, qdd
+
+
+def velocity_product(geom: DeltaGeometry, xyz, qd, *, q=None, J=None) -> np.ndarray:
+    """``J_dot q_dot`` (N, 3), m/s^2: the nozzle acceleration the carriage velocities alone make.
+
+    With ``q_ddot = 0`` the twice differentiated constraint reads ``S X_ddot = -w``, ``w_i = |X_dot -
+    e_z q_dot_i|^2``, so ``J_dot q_dot = -S^-1 w`` (one 3x3 solve instead of :func:`jacobian_dot`'s
+    matrix products).  ``q`` and ``J`` at the poses may be passed when known.
+    """
+    X, _ = _as_poses(xyz)
+    qd = np.atleast_2d(np.asarray(qd, float))
+    q = inverse(geom, X) if q is None else q
+    S = _s_matrix(geom, X, q)
+    h = -S[:, :, 2]
+    # J = -S^-1 diag(h)  =>  S^-1 = -J diag(1/h)
+    Sinv = inv3(S) if J is None else -J / h[:, None, :]
+    Xd = -np.einsum("nij,nj->ni", Sinv, h * qd)
+    w = np.sum(Xd * Xd, axis=1)[:, None] - 2.0 * Xd[:, 2:3] * qd + qd * qd
+    return -np.einsum("nij,nj->ni", Sinv, w)
 
 
 def reachable(geom: DeltaGeometry, xyz, *, tol_m: float = 1e-9) -> np.ndarray:

@@ -7,6 +7,8 @@ from hypothesis import strategies as st
 
 from ffcomp.errors import KinematicsError
 from ffcomp.kinematics import (
+    carriage_rates,
+    velocity_product,
     DeltaGeometry,
     check_reachable,
     condition_number,
@@ -108,6 +110,25 @@ def test_jacobian_dot_gives_task_acceleration():
     Jd = jacobian_dot(GEOM, X[k], Xd[k])
     pred = np.einsum("nij,nj->ni", J, qdd[k]) + np.einsum("nij,nj->ni", Jd, qd[k])
     np.testing.assert_allclose(pred, Xdd[k], atol=2e-5 * np.max(np.abs(Xdd)) + 1e-6)
+
+
+@pytest.mark.parametrize("geom", [GEOM, SKEW])
+def test_closed_form_rates_match_the_jacobian_route(geom):
+    # q' = J^-1 X', q'' = J^-1 (X'' - J_dot q'), and J_dot q' itself, without matrix products
+    rng = np.random.default_rng(5)
+    X = np.column_stack([rng.uniform(-0.08, 0.08, 40), rng.uniform(-0.08, 0.08, 40), rng.uniform(0.01, 0.2, 40)])
+    V, A = rng.normal(0, 0.3, (40, 3)), rng.normal(0, 30.0, (40, 3))
+    Jinv = np.linalg.inv(jacobian(geom, X))
+    Jd = jacobian_dot(geom, X, V)
+    qd = np.einsum("nij,nj->ni", Jinv, V)
+    qdd = np.einsum("nij,nj->ni", Jinv, A - np.einsum("nij,nj->ni", Jd, qd))
+    qd2, qdd2 = carriage_rates(geom, X, V, A)
+    np.testing.assert_allclose(qd2, qd, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(qdd2, qdd, rtol=1e-9, atol=1e-11)
+    vp = np.einsum("nij,nj->ni", Jd, qd)
+    np.testing.assert_allclose(velocity_product(geom, X, qd), vp, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(velocity_product(geom, X, qd, q=inverse(geom, X), J=jacobian(geom, X)), vp,
+                               rtol=1e-10, atol=1e-13)
 
 
 def test_reachability_and_errors():

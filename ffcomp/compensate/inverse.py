@@ -218,13 +218,12 @@ def inverse_dynamics_force(model: LpvModel, mats: PoseMatrices, q, qd, qdd, X, q
     Positions are taken relative to ``q_anchor`` (the rest position the stream starts from), where
     every spring of the model is relaxed; for the paper's model ``K = diag(B_k)`` and it cancels.
     """
-    from ..kinematics import jacobian_dot
+    from ..kinematics import velocity_product
 
     qa = q if q_anchor is None else q - q_anchor
     g = -reference_forcing(mats, qa, qd, qdd)
-    Xd = np.einsum("nij,nj->ni", mats.J, qd)
-    Jd = jacobian_dot(model.geometry, X, Xd)
-    g += model.m_nt * np.einsum("nki,nk->ni", mats.J, np.einsum("nij,nj->ni", Jd, qd))
+    Jdqd = velocity_product(model.geometry, X, qd, q=mats.q_m, J=mats.J)
+    g += model.m_nt * np.einsum("nki,nk->ni", mats.J, Jdqd)
     return g
 
 

@@ -51,8 +51,13 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     wp = np.concatenate([w, np.repeat(w[-1:], S * seg + 1 - N, 0)])
     idx = np.arange(S)[:, None] * seg + np.arange(seg + 1)[None, :]
     ws = wp[idx]  # (S, seg+1, m, R)
-    # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1
-    v = np.einsum("snm,skmr->sknr", foh.g1 - foh.g2, ws[:, :-1]) + np.einsum("snm,skmr->sknr", foh.g2, ws[:, 1:])
+    # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1: one real matrix product
+    # (real and imaginary parts stacked) over [w_k; w_{k+1}]
+    G = np.concatenate([foh.g1 - foh.g2, foh.g2], axis=2)  # (S, n, 2m)
+    G = np.concatenate([G.real, G.imag], axis=1)  # (S, 2n, 2m)
+    Wk = np.concatenate([ws[:, :-1], ws[:, 1:]], axis=2)  # (S, seg, 2m, R)
+    vri = np.matmul(G[:, None], Wk)  # (S, seg, 2n, R)
+    v = vri[:, :, :n] + 1j * vri[:, :, n:]
     e = np.exp(foh.lam * dt_s)  # (S, n)
     # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j, k = 0..seg
     powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n)
@@ -72,7 +77,10 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         x = (Ve[s_] @ (powers[s_, seg][:, None] * z0 + zs[s_, seg])).real
     z0 = np.einsum("snm,smr->snr", Vinv, xs)  # modal start states
     Z = powers[..., None] * z0[:, None] + zs  # (S, seg+1, n, R)
-    X = np.einsum("snm,skmr->sknr", Ve, Z[:, :seg]).real.reshape(S * seg, n, R)
+    # the real part of V Z, as one real product: [Re V, -Im V] [Re Z; Im Z]
+    Vri = np.concatenate([Ve.real, -Ve.imag], axis=2)  # (S, n, 2n)
+    Zri = np.concatenate([Z[:, :seg].real, Z[:, :seg].imag], axis=2)  # (S, seg, 2n, R)
+    X = np.matmul(Vri[:, None], Zri).reshape(S * seg, n, R)
     k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
     x_end = (Ve[-1] @ Z[-1, k_end]).real
     if one:

@@ -16,8 +16,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverError
-from ..kinematics import jacobian, jacobian_dot
-from ..linalg3 import inv3
+from ..kinematics import carriage_rates
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
 from .fbs import _dense_basis
@@ -175,6 +174,28 @@ class FbsStream:
         oc = np.clip(off, 0, sup - 1)
         return tuple(np.where(ok, sh[oc], 0.0) for sh in self._shapes)
 
+    def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int) -> bool:
+        """A cheap sufficient test that the window's command keeps its bounds.
+
+        The spline on the window's rows is ``sum c_j B_j`` over the bases still acting there (the
+        committed ones, ``cp``, and the window's, ``c``); padded with zero coefficients it is the
+        same spline.  Uniform B-splines are a partition of unity and their derivatives are
+        B-splines of differenced coefficients (``s' = sum (c_j - c_{j-1}) N_j / h``), so
+        ``|s| <= max|c|``, ``|s'| <= max|dc| / h`` and ``|s''| <= max|d2c| / h^2`` everywhere.
+        When these bounds, plus the reference's own velocity and acceleration, are inside the
+        limits, no row can break them and the exact check is skipped.
+        """
+        D, V, Acc = self.bounds
+        h = self.m * self.basis.dt_s
+        z = np.zeros((2, c.shape[1]))
+        call = np.concatenate([z, cp, c, z])
+        d1 = np.diff(call, axis=0)
+        d2 = np.diff(d1, axis=0)
+        vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
+        amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
+        return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
+                    and np.max(np.abs(d2)) / (h * h) + amax <= Acc)
+
     def _bounded(self, c, rows, nJ, a, g, factor, lam, pins):
         import osqp
         import scipy.sparse as sp
@@ -185,6 +206,8 @@ class FbsStream:
         sup_j = self.basis.support // m + 1
         jp = np.arange(max(self.cj0, self.w0 // m - sup_j), self.w0 // m)
         cp = self.coef[jp - self.cj0] if len(jp) else np.zeros((0, self.C))
+        if self._surely_within(cp, c, a, rows):
+            return c
         ckey = (nJ, rows, len(jp))
         if ckey not in self._rows_cache:  # the same for every full window
             r = np.arange(0, rows, self.cstride)
@@ -316,12 +339,8 @@ def _chol_to_inv(factor) -> np.ndarray:
 
 def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
     """Carriage velocities and accelerations from nozzle kinematics: ``q' = J^-1 v``,
-    ``q'' = J^-1 (a - J_dot q')``."""
-    Jinv = inv3(jacobian(geom, xyz_m))
-    qd = np.einsum("nij,nj->ni", Jinv, v_m_s)
-    Jd = jacobian_dot(geom, xyz_m, v_m_s)
-    qdd = np.einsum("nij,nj->ni", Jinv, a_m_s2 - np.einsum("nij,nj->ni", Jd, qd))
-    return qd, qdd
+    ``q'' = J^-1 (a - J_dot q')`` (in closed form, :func:`ffcomp.kinematics.carriage_rates`)."""
+    return carriage_rates(geom, xyz_m, v_m_s, a_m_s2)
 
 
 class StreamingInverse:

@@ -154,155 +154,284 @@ class GcodeWriter:
     # ------------------------------------------------------------------ samples
     def feed(self, k0: int, xyz_mm: np.ndarray, e_mm: np.ndarray, move_index: np.ndarray,
              lineno: np.ndarray) -> None:
-        """Compensated nozzle positions of samples ``k0 ..`` with their reference extrusion and move."""
+        """Compensated nozzle positions of samples ``k0 ..`` with their reference extrusion and move.
+
+        The chunk is cut into runs of one planned move.  The numbers of every motion run (point
+        placement, extrusion, feed rates) are computed for the whole chunk at once
+        (:meth:`_plan_chunk`); the lines are then written run by run, in place among the source's
+        other lines.
+        """
         n = len(xyz_mm)
         if n == 0:
             return
         if self.last_pt is None:
             self.last_pt, self.last_k, self.e_last_ref = xyz_mm[0].copy(), k0, float(e_mm[0])
-        # split into runs of one planned move
         cut = np.nonzero(np.diff(move_index))[0] + 1
-        bounds = np.concatenate([[0], cut, [n]])
-        for a, b in zip(bounds[:-1], bounds[1:]):
-            mi = int(move_index[a])
+        starts = np.concatenate([[0], cut]).tolist()
+        ends = np.concatenate([cut, [n]]).tolist()
+        mis = move_index[starts].tolist()
+        lns = lineno[starts].tolist()
+        runs = []
+        for a, b, mi, ln in zip(starts, ends, mis, lns):
             mv = self.moves.get(mi)
-            kind = mv.kind if mv is not None else MOVE
-            ln = int(lineno[a])
+            runs.append((a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
+        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs)
+        seg_base = []
+        for r, (a, b, mi, mv, kind, ln) in enumerate(runs):
             self.flush_lines(ln)
             if kind == MOVE:
-                self._motion(k0 + a, xyz_mm[a:b], e_mm[a:b])
-            elif kind == EXTRUDE:
-                if mv.index not in self.done_moves:
-                    self._extrude(mv)
-                self._hold(k0 + b - 1, e_mm[b - 1])
-            elif kind == DWELL:
-                if mv.index not in self.done_moves:
+                s0, s1 = chunk.run_lines[r]
+                if s1 > s0:
+                    seg_base.append((r, self.nlines))
+                    self._write("".join(chunk.lines[s0:s1]))
+                    self.nlines += s1 - s0
+            elif mv.index not in self.done_moves:
+                if kind == EXTRUDE:
+                    speed = max(mv.cruise_v_mm_s, 1e-3)
+                    self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.1f}\n")
+                    self.stats.extrude_moves += 1
+                else:
                     self._dwell(mv, ln)
-                self._hold(k0 + b - 1, e_mm[b - 1])
             if mv is not None:
                 self.done_moves.add(mv.index)
             self.replaced.add(ln)
-            self.stats.motion_lines_replaced = len(self.replaced)
-            for old in [k for k in self.moves if k < mi - 2]:
-                del self.moves[old]
-            if len(self.done_moves) > 64:
-                self.done_moves = {k for k in self.done_moves if k >= mi - 2}
+        self.stats.motion_lines_replaced = len(self.replaced)
+        last_mi = runs[-1][2]
+        for old in [k for k in self.moves if k < last_mi - 2]:
+            del self.moves[old]
+        if len(self.done_moves) > 64:
+            self.done_moves = {k for k in self.done_moves if k >= last_mi - 2}
+        # the self-check's table: body line, first and last sample, catch-up flag of every segment
+        if seg_base and len(chunk.seg_rows):
+            base = np.zeros(len(runs), np.int64)
+            for r, n0 in seg_base:
+                base[r] = n0
+            rows = chunk.seg_rows.copy()
+            rows[:, 0] += base[chunk.seg_run]
+            self.segments.extend(rows.reshape(-1).tolist())
 
-    def _hold(self, k_end: int, e_ref_end: float) -> None:
-        self.f_last = 0.0  # the firmware stops for extruder-only moves and dwells
-        self.last_k = k_end
-        self.e_last_ref = e_ref_end
-        self.after_hold = True
+    def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list) -> "_Chunk":
+        """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.
 
-    def _extrude(self, mv: PlannedMove) -> None:
-        de = mv.end_mm[3] - mv.start_mm[3]
-        speed = max(mv.cruise_v_mm_s, 1e-3)
-        self.e_ref_cum += de
-        de_w = round(self.e_ref_cum - self.e_emitted, 5)
-        self._w(f"G1 E{de_w:.5f} F{speed * 60:.1f}\n")
-        self.e_emitted += de_w
-        self.stats.extrude_moves += 1
+        Each motion run's path starts at the last emitted point; after an extruder-only move or a
+        dwell (the planned nozzle stood still while the command moved on) the run's first segment
+        catches up in one sample's time instead of stretching the next segment.  Updates the
+        writer's running state (last point, extrusion totals, feed rate, statistics) as if the runs
+        had been written one after the other.
+        """
+        R = len(runs)
+        ch = _Chunk(R)
+        lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
+        last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
+        ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
+        ext_runs = []
+        follows_hold = np.zeros(R, bool)
+        for r, (a, b, mi, mv, kind, ln) in enumerate(runs):
+            if kind == MOVE:
+                run_ids.append(r)
+                a_s.append(a)
+                n_s.append(b - a + 1)
+                lead_pt.append(last_pt)
+                lead_k.append(last_k)
+                lead_e.append(e_last)
+                catch.append(after_hold and b - a + 1 > 2)
+                follows_hold[r] = after_hold
+                last_pt, after_hold = X[b - 1], False
+            else:
+                if kind == EXTRUDE and mv.index not in self.done_moves:
+                    ext_de[r] = mv.end_mm[3] - mv.start_mm[3]
+                    ext_runs.append(r)
+                after_hold = True
+            last_k, e_last = k0 + b - 1, float(E[b - 1])
+        self.after_hold = after_hold
+        self.last_k, self.e_last_ref = last_k, e_last
+        if not run_ids:
+            self._extrusion(ch, np.zeros(0), np.zeros(0, np.int64), ext_de, ext_runs)
+            self.f_last = 0.0  # the firmware stops for extruder-only moves and dwells
+            return ch
+        run_ids, n_s, a_s, catch = np.array(run_ids), np.array(n_s), np.array(a_s), np.array(catch)
+        offs = np.cumsum(n_s) - n_s
+        total = int(n_s.sum())
+        src = np.repeat(a_s - 1 - offs, n_s) + np.arange(total)  # sample of each path point
+        P = X[np.maximum(src, 0)]
+        P[offs] = np.array(lead_pt)
+        Ef = E[np.maximum(src, 0)]
+        Ef[offs] = lead_e
+        K = k0 + src
+        K[offs] = lead_k
+        # ---- point placement, all runs at once
+        last = offs + n_s - 1
+        keep = np.zeros(total, bool)
+        keep[offs] = keep[last] = True
+        keep[offs[catch] + 1] = True
+        keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
+        kidx = np.nonzero(keep)[0]
+        run_of = np.repeat(np.arange(len(n_s)), n_s)
+        same = run_of[kidx[1:]] == run_of[kidx[:-1]]
+        i, j = kidx[:-1][same], kidx[1:][same]
+        dt = (K[j] - K[i]) * self.dt
+        ok = dt > 0
+        i, j, dt = i[ok], j[ok], dt[ok]
+        srun = run_of[i]  # motion run of each segment
+        # the firmware sees the printed (rounded) coordinates: durations must come from those
+        Pr = np.round(P, 4)
+        d = Pr[j] - Pr[i]
+        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
+        de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
+        first_seg = np.r_[True, srun[1:] != srun[:-1]]
+        v = self._firmware_feeds(d, dist, dt, hold, first_seg & follows_hold[run_ids[srun]])
+        if runs[-1][4] != MOVE:
+            self.f_last = 0.0
+        # ---- statistics
+        moving = ~hold
+        self.stats.holds += int(hold.sum())
+        self.stats.segments += int(moving.sum())
+        self.stats.extruded_mm += float(np.sum(np.maximum(de[moving], 0.0)))
+        if moving.any():
+            vv = d[moving] / dt[moving][:, None]
+            self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[moving].max()))
+            if self.prev_v is not None:
+                vv = np.vstack([self.prev_v[None], vv])
+            if len(vv) > 1:
+                acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[moving][-len(vv) + 1:], self.dt)
+                self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
+            self.prev_v = vv[-1]
+        # ---- the lines (one per segment) and the self-check's table
+        xs, ys, zs = Pr[j].T.tolist()
+        lines = []
+        app = lines.append
+        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), dt.tolist()):
+            if h:
+                if abs(e) > 1e-9:
+                    app(f"G1 E{e:.5f} F{max(abs(e) / t, 1e-3) * 60:.1f}\n")
+                else:
+                    app(f"G4 P{t * 1000:.0f}\n")
+            elif abs(e) > 1e-9:
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.3f}\n")
+            else:
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.3f}\n")
+        ch.lines = lines
+        cnt = np.bincount(srun, minlength=len(n_s))
+        ends = np.cumsum(cnt)
+        for m_, r in enumerate(run_ids.tolist()):
+            ch.run_lines[r] = (int(ends[m_] - cnt[m_]), int(ends[m_]))
+        local = np.arange(len(i)) - (ends - cnt)[srun] + 1  # line of the segment within its run
+        cu = catch[srun] & (i == offs[srun])
+        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64)], 1)[moving].astype(np.int64)
+        ch.seg_run = run_ids[srun][moving]
+        self.last_pt = Pr[last[-1]].copy()
+        return ch
+
+    def _extrusion(self, ch, de_ref, seg_run, ext_de, ext_runs) -> np.ndarray:
+        """Relative extrusion of every segment and extruder-only move of a chunk, in written order.
+
+        Extrusion follows the reference timing; the emitted total is the reference total rounded to
+        0.01 um, so rounding never accumulates (each line gets the difference of consecutive
+        rounded totals).  Returns the segments' values; the extruder-only moves' go to ``ch``.
+        """
+        ext_runs = np.asarray(ext_runs, np.int64)
+        ev_run = np.concatenate([seg_run, ext_runs])
+        ev_val = np.concatenate([de_ref, ext_de[ext_runs]])
+        order = np.argsort(ev_run, kind="stable")
+        cum = self.e_ref_cum + np.cumsum(ev_val[order])
+        tot = np.round(cum, 5)
+        out = np.empty(len(order))
+        out[order] = np.diff(np.concatenate([[self.e_emitted], tot]))
+        if len(order):
+            self.e_ref_cum = float(cum[-1])
+            self.e_emitted = float(tot[-1])
+        for m_, r in enumerate(ext_runs.tolist()):
+            ch.extrude_de[r] = float(out[len(seg_run) + m_])
+        return out[: len(seg_run)]
 
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
         self._w(f"G4 P{mv.cruise_t_s * 1000:.0f}\n")
 
-    def _motion(self, k_start: int, P: np.ndarray, E: np.ndarray) -> None:
-        # path from the last emitted point through this run's samples
-        pts = np.vstack([self.last_pt[None], P])
-        es = np.concatenate([[self.e_last_ref], E])
-        ks = np.concatenate([[self.last_k], np.arange(k_start, k_start + len(P))])
-        # samples are consecutive except possibly the jump from last_k (after a hold)
-        catch_up = self.after_hold and len(pts) > 2
-        if catch_up:
-            # the command moved on while the planned nozzle stood still (retraction, dwell): catch up
-            # in one sample's time instead of stretching the next segment
-            idx = np.concatenate([[0], 1 + adaptive_breakpoints(pts[1:], self.tol)])
-        else:
-            idx = adaptive_breakpoints(pts, self.tol)
-        self.after_hold = False
-        i, j = idx[:-1], idx[1:]
-        dt = (ks[j] - ks[i]) * self.dt
-        ok = dt > 0
-        i, j, dt = i[ok], j[ok], dt[ok]
-        if len(i):
-            # the firmware sees the printed (rounded) coordinates: durations must come from those
-            pts = np.round(pts, 4)
-            d = pts[j] - pts[i]
-            dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-            # extrusion: the emitted total is the reference total rounded to 0.01 um, so the
-            # rounding never accumulates (each line gets the difference of consecutive rounded totals)
-            cum = self.e_ref_cum + np.cumsum(es[j] - es[i])
-            tot = np.round(cum, 5)
-            de = np.diff(np.concatenate([[self.e_emitted], tot]))
-            self.e_ref_cum = float(cum[-1])
-            self.e_emitted = float(tot[-1])
-            hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
-            v = self._firmware_feeds(d, dist, dt, hold)
-            lines = []
-            seg_rows = []
-            n0 = self.nlines
-            for r in range(len(i)):
-                if hold[r]:
-                    if abs(de[r]) > 1e-9:
-                        lines.append(f"G1 E{de[r]:.5f} F{max(abs(de[r]) / dt[r], 1e-3) * 60:.1f}\n")
-                    else:
-                        lines.append(f"G4 P{dt[r] * 1000:.0f}\n")
-                    continue
-                x, y, z = pts[j[r]]
-                if abs(de[r]) > 1e-9:
-                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{de[r]:.5f} F{v[r] * 60:.3f}\n")
-                else:
-                    lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{v[r] * 60:.3f}\n")
-                seg_rows.append((n0 + len(lines), int(ks[i[r]]), int(ks[j[r]]), int(catch_up and i[r] == 0)))
-            self._write("".join(lines))
-            self.nlines += len(lines)
-            for row in seg_rows:
-                self.segments.extend(row)
-            self.stats.holds += int(hold.sum())
-            self.stats.segments += int((~hold).sum())
-            self.stats.extruded_mm += float(np.sum(np.maximum(de[~hold], 0.0)))
-            if (~hold).any():
-                vv = d[~hold] / dt[~hold][:, None]
-                self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[~hold].max()))
-                if self.prev_v is not None:
-                    vv = np.vstack([self.prev_v[None], vv])
-                if len(vv) > 1:
-                    acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[~hold][-len(vv) + 1:], self.dt)
-                    self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
-                self.prev_v = vv[-1]
-        self.last_pt = pts[-1].copy()
-        self.last_k = int(ks[-1])
-        self.e_last_ref = float(es[-1])
-
-    def _firmware_feeds(self, d, dist, dt, hold) -> np.ndarray:
+    def _firmware_feeds(self, d, dist, dt, hold, stop_before) -> np.ndarray:
         """Feed rates that make the firmware's trapezoids last the intended durations.
 
         A segment cruises at its F, but the firmware enters it at the junction speed
         ``min(F_prev, F)`` and leaves at ``min(F, F_next)``, ramping at its acceleration limit
         (the header's ACCEL, or Klipper's delta limit ``max_z_accel * d / |dz|`` on segments with z
         travel).  Solving ``d = F T - (F - v_in)^2 / 2a - (F - v_out)^2 / 2a`` for F, a few sweeps
-        over the run, removes the time those ramps would add (a slow drift otherwise).
+        over the chunk, removes the time those ramps would add (a slow drift otherwise).  The
+        firmware starts from rest after a held segment and where ``stop_before`` is set (an
+        extruder-only move or a dwell stands between two runs).
         """
         v = dist / dt
+        if len(v) == 0:
+            return v
         dz = np.abs(d[:, 2])
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(dz > 0, dist / np.maximum(dz, 1e-12), np.inf)
         a = np.minimum(self.accel, self.max_z_accel * ratio)
-        if not np.all(np.isfinite(a)) or len(v) == 0:
+        if not np.all(np.isfinite(a)):
             return v
+        stop = np.concatenate([[False], hold[:-1]]) | stop_before
         F = v.copy()
         for _ in range(4):
             prev = np.concatenate([[self.f_last], F[:-1]])
-            prev = np.where(np.concatenate([[False], hold[:-1]]), 0.0, prev)
+            prev[stop] = 0.0
             nxt = np.concatenate([F[1:], [F[-1]]])
+            nxt[:-1][stop[1:]] = 0.0
             vin = np.minimum(prev, F)
             vout = np.minimum(nxt, F)
             b = vin + vout + a * dt
             disc = b * b - 2.0 * (vin * vin + vout * vout + 2.0 * a * dist)
             Fn = np.where(disc > 0, 0.5 * (b - np.sqrt(np.maximum(disc, 0.0))), v)
             F = np.where(hold, v, np.maximum(Fn, v))
-        self.f_last = float(F[~hold][-1]) if (~hold).any() else 0.0
+        self.f_last = 0.0 if hold[-1] else float(F[-1])
         return F
 
     def finish(self) -> None:
         self.flush_lines(1 << 62)
+
+
+class _Chunk:
+    """The writer's numbers for one chunk (see :meth:`GcodeWriter._plan_chunk`)."""
+
+    __slots__ = ("lines", "run_lines", "extrude_de", "seg_rows", "seg_run")
+
+    def __init__(self, n_runs: int):
+        self.lines: list[str] = []
+        self.run_lines = [(0, 0)] * n_runs
+        self.extrude_de = [0.0] * n_runs
+        self.seg_rows = np.zeros((0, 4), np.int64)
+        self.seg_run = np.zeros(0, np.int64)
+
+
+def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: float,
+                      keep: np.ndarray) -> np.ndarray:
+    """:func:`adaptive_breakpoints` on many runs of ``P`` at once (the same points as run by run).
+
+    Run ``r`` spans ``P[first[r]:last[r] + 1]``; ``keep`` marks the points kept already (at least
+    each run's ends).  The Douglas-Peucker recursion runs breadth first: every open interval of
+    every run is split in the same vectorised pass.
+    """
+    I, J = np.asarray(first), np.asarray(last)
+    sel = J - I >= 2
+    I, J = I[sel], J[sel]
+    while len(I):
+        L = J - I - 1
+        st = np.cumsum(L) - L
+        rep = np.repeat(np.arange(len(I)), L)
+        pos = np.arange(int(L.sum())) - np.repeat(st - I - 1, L)
+        f = (pos - I[rep]) / (J - I)[rep]
+        PI = P[I]
+        lerp = PI[rep] + f[:, None] * (P[J] - PI)[rep]
+        dev = np.max(np.abs(P[pos] - lerp), axis=1)
+        mx = np.maximum.reduceat(dev, st)
+        hit = np.nonzero(dev == mx[rep])[0]
+        firsthit = hit[np.r_[True, rep[hit[1:]] != rep[hit[:-1]]]]
+        split = firsthit[mx[rep[firsthit]] > tol]
+        if not len(split):
+            break
+        iv = rep[split]
+        mid = pos[split]
+        keep[mid] = True
+        I = np.concatenate([I[iv], mid])
+        J = np.concatenate([mid, J[iv]])
+        sel = J - I >= 2
+        I, J = I[sel], J[sel]
+    return keep

@@ -141,7 +141,7 @@ class LpvModel:
         if check:
             check_reachable(self.geometry, xyz, what="model pose")
         q = inverse(self.geometry, xyz)
-        J = jacobian(self.geometry, xyz)
+        J = jacobian(self.geometry, xyz, q=q)
         JtJ = np.einsum("pki,pkj->pij", J, J)
         cp = self.carriage
         eye = np.eye(3)[None]

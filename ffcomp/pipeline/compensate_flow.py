@@ -15,6 +15,7 @@ import os
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field
+from operator import attrgetter
 from typing import Callable
 
 import numpy as np
@@ -26,6 +27,7 @@ from ..compensate.ltv import simulate_piecewise
 from ..compensate.stream import StreamingInverse, carriage_derivatives
 from ..errors import GcodeError, SelfCheckError
 from ..gcode.parser import parse_gcode
+from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
@@ -530,15 +532,10 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     dt = 1.0 / profile.limits.sample_rate_hz
     worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
     worst_cu = 0.0
-    t_end = 0.0
-    batch_pos, batch_k = [], []
-
-    batch_cu = []
-    n_batch = 0
+    batch_pos, batch_k, batch_cu = [], [], []
 
     def flush():
-        nonlocal worst, worst_k, sq, cnt, worst_cu, n_batch
-        n_batch = 0
+        nonlocal worst, worst_k, sq, cnt, worst_cu
         if not batch_pos:
             return
         P = np.concatenate(batch_pos) * 1e-3
@@ -561,40 +558,47 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         batch_k.clear()
         batch_cu.clear()
 
-    rows: list[tuple] = []
+    scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
+                         "decel_t_s")
+    buf: list = []
 
     def flush_moves():
-        nonlocal n_batch
-        if not rows:
+        if not buf:
             return
-        R = np.array(rows, dtype=float)
-        rows.clear()
-        ka, kb, cu = R[:, 0].astype(np.int64), R[:, 1].astype(np.int64), R[:, 2].astype(bool)
+        mvs = [m for m in buf if m.kind == MOVE]
+        buf.clear()
+        if not mvs:
+            return
+        R = np.array([scalars(m) for m in mvs], dtype=float)
+        geo = np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)
+        # the segments the writer wrote, by their line in the output
+        ln = R[:, 0].astype(np.int64)
+        j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
+        ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
+        R, geo, j = R[ok], geo[ok], j[ok]
+        ka, kb, cu = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool)
         cnt = kb - ka
         idx = np.repeat(np.arange(len(R)), cnt)
         k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
-        tau = np.minimum(k * dt, R[idx, 10])
-        s_ = _distance_v(R[idx, 3], R[idx, 4], R[idx, 5], R[idx, 6], R[idx, 7], tau)
-        P = R[idx, 11:14] + s_[:, None] * R[idx, 14:17]
+        dur = R[:, 4] + R[:, 5] + R[:, 6]
+        tau = np.minimum(k * dt, dur[idx])
+        s_ = _distance_v(R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5], tau)
+        P = geo[idx, :3] + s_[:, None] * geo[idx, 3:]
         batch_pos.append(P)
         batch_k.append(ka[idx] + k)
         batch_cu.append(cu[idx])
-        n_batch += len(k)
         flush()
 
+    last = None
     for mv in GcodePlan(path, profile, lenient=True):
-        t_end = mv.t_end_s
-        if mv.kind != "move":
-            continue
-        j = int(np.searchsorted(seg_lines, mv.lineno))
-        if j >= len(seg_lines) or seg_lines[j] != mv.lineno:
-            continue
-        ka, kb, cu = (int(v) for v in tab[j, 1:])
-        rows.append((ka, kb, cu, mv.accel_mm_s2, mv.start_v_mm_s, mv.cruise_v_mm_s, mv.accel_t_s, mv.cruise_t_s,
-                     0.0, 0.0, mv.duration_s, *mv.start_mm[:3], *mv.unit[:3]))
-        if len(rows) >= 20000:
+        buf.append(mv)
+        if len(buf) >= 20000:
+            last = buf[-1]
             flush_moves()
+    if buf:
+        last = buf[-1]
     flush_moves()
+    t_end = last.t_end_s if last is not None else 0.0
     qf.close()
     summ.output_print_time_s = t_end
     summ.self_check_max_um = worst * 1e6

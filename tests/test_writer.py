@@ -1,0 +1,32 @@
+"""The G-code writer's point placement: the batched Douglas-Peucker equals the run-by-run one."""
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from ffcomp.gcode.writer import _breakpoints_runs, adaptive_breakpoints
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(2, 60), min_size=1, max_size=8), st.integers(0, 2**31 - 1),
+       st.sampled_from([1e-4, 5e-3, 0.05]))
+def test_batched_breakpoints_equal_run_by_run(lengths, seed, tol):
+    rng = np.random.default_rng(seed)
+    runs = [np.cumsum(rng.normal(0, 0.02, (n, 3)), axis=0) for n in lengths]
+    P = np.concatenate(runs)
+    first = np.cumsum([0] + lengths[:-1])
+    last = first + np.array(lengths) - 1
+    keep = np.zeros(len(P), bool)
+    keep[first] = keep[last] = True
+    got = np.nonzero(_breakpoints_runs(P, first, last, tol, keep))[0]
+    want = np.concatenate([f + adaptive_breakpoints(r, tol) for f, r in zip(first, runs)])
+    np.testing.assert_array_equal(got, want)
+
+
+def test_breakpoints_keep_every_sample_within_tolerance():
+    t = np.linspace(0, 1, 400)
+    P = np.column_stack([np.sin(7 * t), np.cos(5 * t), 0.01 * t])
+    idx = adaptive_breakpoints(P, 1e-3)
+    lerp = np.column_stack([np.interp(np.arange(len(P)), idx, P[idx, k]) for k in range(3)])
+    assert np.max(np.abs(lerp - P)) <= 1e-3
+    assert len(idx) < len(P) / 3
