@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
-from .linalg3 import inv3
+from .linalg3 import inv3, matvec3
 
 __all__ = [
     "DeltaGeometry",
@@ -265,9 +265,9 @@ def carriage_rates(geom: DeltaGeometry, xyz, xyz_dot, xyz_ddot) -> tuple[np.ndar
     q = inverse(geom, X)
     S = _s_matrix(geom, X, q)
     sz = S[:, :, 2]
-    qd = np.einsum("nij,nj->ni", S, v) / sz
+    qd = matvec3(S, v) / sz
     sd2 = np.sum(v * v, axis=1)[:, None] - 2.0 * v[:, 2:3] * qd + qd * qd  # |X_dot - e_z q_dot_i|^2
-    qdd = (np.einsum("nij,nj->ni", S, a) + sd2) / sz
+    qdd = (matvec3(S, a) + sd2) / sz
     return qd, qdd
 
 
@@ -285,9 +285,9 @@ def velocity_product(geom: DeltaGeometry, xyz, qd, *, q=None, J=None) -> np.ndar
     h = -S[:, :, 2]
     # J = -S^-1 diag(h)  =>  S^-1 = -J diag(1/h)
     Sinv = inv3(S) if J is None else -J / h[:, None, :]
-    Xd = -np.einsum("nij,nj->ni", Sinv, h * qd)
+    Xd = -matvec3(Sinv, h * qd)
     w = np.sum(Xd * Xd, axis=1)[:, None] - 2.0 * Xd[:, 2:3] * qd + qd * qd
-    return -np.einsum("nij,nj->ni", Sinv, w)
+    return -matvec3(Sinv, w)
 
 
 def reachable(geom: DeltaGeometry, xyz, *, tol_m: float = 1e-9) -> np.ndarray:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["inv3", "solve3"]
+__all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3"]
 
 
 def inv3(A: np.ndarray) -> np.ndarray:
@@ -29,3 +29,24 @@ def inv3(A: np.ndarray) -> np.ndarray:
 def solve3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """``A^-1 B`` for stacks of 3x3 ``A`` (..., 3, 3) and ``B`` (..., 3, k)."""
     return inv3(A) @ B
+
+
+def matvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``A x`` for stacks (N, 3, 3) and (N, 3), by columns (several times faster than einsum)."""
+    return A[:, :, 0] * x[:, 0:1] + A[:, :, 1] * x[:, 1:2] + A[:, :, 2] * x[:, 2:3]
+
+
+def rmatvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``A^T x`` for stacks (N, 3, 3) and (N, 3)."""
+    return A[:, 0, :] * x[:, 0:1] + A[:, 1, :] * x[:, 1:2] + A[:, 2, :] * x[:, 2:3]
+
+
+def gram3(A: np.ndarray) -> np.ndarray:
+    """``A^T A`` for a stack (N, 3, 3) (symmetric: six distinct entries)."""
+    out = np.empty_like(A)
+    for i in range(3):
+        for j in range(i, 3):
+            v = A[:, 0, i] * A[:, 0, j] + A[:, 1, i] * A[:, 1, j] + A[:, 2, i] * A[:, 2, j]
+            out[:, i, j] = v
+            out[:, j, i] = v
+    return out

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..linalg3 import matvec3, rmatvec3
 from ..model.lpv import LpvModel, PoseMatrices
 from .bspline import UniformBasis
 from .fbs import FbsConfig, fbs_solve
@@ -129,8 +130,7 @@ def reference_forcing(mats: PoseMatrices, q, qd, qdd) -> np.ndarray:
     ``f_ref = B_c q_ref' + B_k q_ref - (M q_ref'' + C q_ref' + K q_ref)``, shape (N, 3), N.
     """
     f = mats.B_c * qd + mats.B_k * q
-    f -= np.einsum("nij,nj->ni", mats.M, qdd) + np.einsum("nij,nj->ni", mats.C, qd)
-    f -= np.einsum("nij,nj->ni", mats.K, q)
+    f -= matvec3(mats.M, qdd) + matvec3(mats.C, qd) + matvec3(mats.K, q)
     return f
 
 
@@ -223,7 +223,7 @@ def inverse_dynamics_force(model: LpvModel, mats: PoseMatrices, q, qd, qdd, X, q
     qa = q if q_anchor is None else q - q_anchor
     g = -reference_forcing(mats, qa, qd, qdd)
     Jdqd = velocity_product(model.geometry, X, qd, q=mats.q_m, J=mats.J)
-    g += model.m_nt * np.einsum("nki,nk->ni", mats.J, Jdqd)
+    g += model.m_nt * rmatvec3(mats.J, Jdqd)
     return g
 
 

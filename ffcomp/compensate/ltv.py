@@ -47,21 +47,34 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     n = A.shape[1]
     foh = modal_foh(A, B, dt_s)
     Vinv = np.linalg.inv(foh.V)
+    # real system, real inputs: a complex-conjugate pair of modes carries the same information
+    # twice.  When every mode is oscillatory, keep one of each pair and double the real part.
+    lam, Vfull, g1, g2 = foh.lam, foh.V, foh.g1, foh.g2
+    scale = 1.0
+    up = lam.imag > 0
+    if n % 2 == 0 and np.all(up.sum(axis=1) == n // 2):
+        sel = np.argsort(~up, axis=1, kind="stable")[:, : n // 2]  # the modes with Im > 0
+        take = lambda a: np.take_along_axis(a, sel[:, :, None], axis=1)  # noqa: E731
+        lam = np.take_along_axis(lam, sel, axis=1)
+        Vfull = np.take_along_axis(Vfull, sel[:, None, :], axis=2)
+        Vinv, g1, g2 = take(Vinv), take(g1), take(g2)
+        scale = 2.0
+    n_m = lam.shape[1]
     # inputs per segment incl. the first sample of the next one (held at the end of the data)
     wp = np.concatenate([w, np.repeat(w[-1:], S * seg + 1 - N, 0)])
     idx = np.arange(S)[:, None] * seg + np.arange(seg + 1)[None, :]
     ws = wp[idx]  # (S, seg+1, m, R)
     # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1: one real matrix product
     # (real and imaginary parts stacked) over [w_k; w_{k+1}]
-    G = np.concatenate([foh.g1 - foh.g2, foh.g2], axis=2)  # (S, n, 2m)
-    G = np.concatenate([G.real, G.imag], axis=1)  # (S, 2n, 2m)
+    G = np.concatenate([g1 - g2, g2], axis=2)  # (S, n_m, 2m)
+    G = np.concatenate([G.real, G.imag], axis=1)  # (S, 2 n_m, 2m)
     Wk = np.concatenate([ws[:, :-1], ws[:, 1:]], axis=2)  # (S, seg, 2m, R)
-    vri = np.matmul(G[:, None], Wk)  # (S, seg, 2n, R)
-    v = vri[:, :, :n] + 1j * vri[:, :, n:]
-    e = np.exp(foh.lam * dt_s)  # (S, n)
+    vri = np.matmul(G[:, None], Wk)  # (S, seg, 2 n_m, R)
+    v = vri[:, :, :n_m] + 1j * vri[:, :, n_m:]
+    e = np.exp(lam * dt_s)  # (S, n_m)
     # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j, k = 0..seg
-    powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n)
-    zs = np.zeros((S, seg + 1, n, R), complex)
+    powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n_m)
+    zs = np.zeros((S, seg + 1, n_m, R), complex)
     for k in range(1, seg + 1):
         zs[:, k] = zs[:, k - 1] * e[:, :, None] + v[:, k - 1]
     # hand the physical state from segment to segment
@@ -70,16 +83,16 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         x = np.zeros((n, R))
     else:
         x = np.asarray(x0, float).reshape(n, -1) * np.ones((1, R))
-    Ve = foh.V
+    Ve = Vfull * scale
     for s_ in range(S):
         xs[s_] = x
         z0 = Vinv[s_] @ x
         x = (Ve[s_] @ (powers[s_, seg][:, None] * z0 + zs[s_, seg])).real
     z0 = np.einsum("snm,smr->snr", Vinv, xs)  # modal start states
-    Z = powers[..., None] * z0[:, None] + zs  # (S, seg+1, n, R)
+    Z = powers[..., None] * z0[:, None] + zs  # (S, seg+1, n_m, R)
     # the real part of V Z, as one real product: [Re V, -Im V] [Re Z; Im Z]
-    Vri = np.concatenate([Ve.real, -Ve.imag], axis=2)  # (S, n, 2n)
-    Zri = np.concatenate([Z[:, :seg].real, Z[:, :seg].imag], axis=2)  # (S, seg, 2n, R)
+    Vri = np.concatenate([Ve.real, -Ve.imag], axis=2)  # (S, n, 2 n_m)
+    Zri = np.concatenate([Z[:, :seg].real, Z[:, :seg].imag], axis=2)  # (S, seg, 2 n_m, R)
     X = np.matmul(Vri[:, None], Zri).reshape(S * seg, n, R)
     k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
     x_end = (Ve[-1] @ Z[-1, k_end]).real

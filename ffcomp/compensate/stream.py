@@ -13,6 +13,7 @@ the accuracy/time trade-off.
 from __future__ import annotations
 
 import numpy as np
+from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverError
@@ -72,6 +73,9 @@ class FbsStream:
         G[np.diag_indices_from(G)] += self.lam
         self.factor = cho_factor(G, lower=True, check_finite=False)
         self._tail_cache: dict[int, tuple] = {}
+        self._op_cache: dict[int, tuple] = {}
+        self._fft_cache: dict[int, tuple] = {}
+        self._idx_cache: dict[int, np.ndarray] = {}
         # buffers indexed from sample `off`
         self.off = 0
         self.tgt = np.zeros((0, self.n_out * self.C))
@@ -125,34 +129,66 @@ class FbsStream:
             wgt = self.pin_weight**2 * max(float(np.mean(np.diag(G))), 1e-30)
             G += wgt * Bk.T @ Bk
             factor = cho_factor(G, lower=True, check_finite=False)
-        idx = np.clip(np.arange(nJ) * m + self.basis.greville_offset(), 0, rows - 1) + a
+        gi = self._idx_cache.get(rows)
+        if gi is None:  # each basis' Greville sample (where the prior acts)
+            gi = self._idx_cache[rows] = np.clip(np.arange(nJ) * m + self.basis.greville_offset(), 0, rows - 1)
+        idx = gi + a
+        bounded = self.bounds is not None and self.n_in == 1 and self.n_out == 1
+        n_commit = nJ if final else self.A // m
+        r = resid[:: self.rs]
         if self.C > 1:  # one kernel, several signals: a matrix right-hand side
-            g = Phi.T @ resid[:: self.rs] + lam * self.tgt[idx]
-            c = cho_solve(factor, g, check_finite=False)
+            prior = self.tgt[idx]
         else:
             prior = self.tgt[idx][:, : self.n_in] if self.n_in == self.n_out else np.zeros((nJ, self.n_in))
-            g = Phi.T @ resid[:: self.rs].reshape(-1) + lam * prior.reshape(-1)
-            c = cho_solve(factor, g, check_finite=False).reshape(nJ, self.n_in)
+            r, prior = r.reshape(-1), prior.reshape(-1)
+
+        def rhs():
+            return Phi.T @ r + lam * prior
+
+        if pins.size:
+            c = cho_solve(factor, rhs(), check_finite=False)
+        else:
+            # the solution operators of this window shape, G^-1 Phi^T and lam G^-1 (the same in every
+            # window): two products instead of forming Phi^T r and a Cholesky solve; only the
+            # committed bases are needed unless the bounds are checked
+            Mop, Nop = self._operators(rows, Phi, factor, lam)
+            k = (nJ if bounded else n_commit) * self.n_in
+            c = Mop[:k] @ r + Nop[:k] @ prior
+        c = c.reshape(-1, self.n_in * self.C) if self.C == 1 else c
         if not np.all(np.isfinite(c)):
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
-        if self.bounds is not None and self.n_in == 1 and self.n_out == 1:
-            c = self._bounded(c, rows, nJ, a, g, factor, lam, pins)
-        n_commit = nJ if final else self.A // m
+        if bounded:
+            c = self._bounded(c, rows, nJ, a, rhs, factor, lam, pins)
         c = c[:n_commit]
-        # predicted output of the committed bases (overlap-add of identical kernels)
-        up = np.zeros((n_commit * m, c.shape[1]))
-        up[::m] = c
+        # predicted output of the committed bases: the overlap-add of identical kernels, by FFT
+        n_y = n_commit * m + self.L - 1
+        nfft, Khat = self._kernel_fft(n_y)
+        up = np.zeros((nfft, c.shape[1]))
+        up[: n_commit * m: m] = c
+        U = rfft(up, axis=0)
         if self.C > 1:
-            for ch in range(self.C):
-                y = np.convolve(up[:, ch], self.K[0, :, 0])
-                self.pred[a:a + len(y), ch] += y
+            Y = U * Khat[:, 0, :1]
         else:
-            for i in range(self.n_in):
-                for o in range(self.n_out):
-                    y = np.convolve(up[:, i], self.K[i, :, o])
-                    self.pred[a:a + len(y), o] += y
+            Y = np.einsum("fi,fio->fo", U, Khat)
+        self.pred[a:a + n_y] += irfft(Y, nfft, axis=0)[:n_y]
         self.coef = np.concatenate([self.coef, c])
         self.w0 += n_commit * m
+
+    def _kernel_fft(self, n: int) -> tuple:
+        """FFT length for ``n`` output samples and the kernel's transform at it, (F, n_in, n_out)."""
+        hit = self._fft_cache.get(n)
+        if hit is None:
+            nfft = next_fast_len(n, real=True)
+            hit = self._fft_cache[n] = (nfft, rfft(self.K, nfft, axis=1).transpose(1, 0, 2).copy())
+        return hit
+
+    def _operators(self, rows: int, Phi: np.ndarray, factor, lam: float) -> tuple:
+        ops = self._op_cache.get(rows)
+        if ops is None:
+            Mop = cho_solve(factor, Phi.T, check_finite=False)
+            Nop = lam * cho_solve(factor, np.eye(Phi.shape[1]), check_finite=False)
+            ops = self._op_cache[rows] = (np.ascontiguousarray(Mop), np.ascontiguousarray(Nop))
+        return ops
 
     # ------------------------------------------------------------------ bounds (OSQP)
     def set_bounds(self, deviation: float, velocity: float, acceleration: float, stride: int = 2) -> None:
@@ -196,7 +232,7 @@ class FbsStream:
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
                     and np.max(np.abs(d2)) / (h * h) + amax <= Acc)
 
-    def _bounded(self, c, rows, nJ, a, g, factor, lam, pins):
+    def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
         import osqp
         import scipy.sparse as sp
 
@@ -228,6 +264,7 @@ class FbsStream:
         if chans.size == 0:
             return c
         self.qp_windows += 1
+        g = rhs().reshape(nJ, -1)
         # OSQP works on a scaled problem: coefficients in units of 0.1 mm, the objective normalised,
         # every constraint row normalised to unit size (values, velocities, accelerations differ by
         # orders of magnitude)

@@ -32,7 +32,7 @@ import control
 import numpy as np
 
 from ..kinematics import DeltaGeometry, check_reachable, inverse, jacobian
-from ..linalg3 import inv3
+from ..linalg3 import gram3, inv3
 from .submodels import CarriageParams
 
 __all__ = [
@@ -142,7 +142,7 @@ class LpvModel:
             check_reachable(self.geometry, xyz, what="model pose")
         q = inverse(self.geometry, xyz)
         J = jacobian(self.geometry, xyz, q=q)
-        JtJ = np.einsum("pki,pkj->pij", J, J)
+        JtJ = gram3(J)
         cp = self.carriage
         eye = np.eye(3)[None]
         P = xyz.shape[0]

@@ -32,6 +32,7 @@ from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
 from ..kinematics import forward, inverse, jacobian
+from ..linalg3 import matvec3
 from ..model.lpv import LpvModel, mech_arrays
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M"]
@@ -158,7 +159,7 @@ class _Predictor:
         self.w_last = w[-1:]
         J = jacobian(self.model.geometry, xyz_ref)
         for r in range(2):
-            e = np.einsum("nij,nj->ni", J, xs[prefix:, :3, r] + self.q0 - q_ref)
+            e = matvec3(J, xs[prefix:, :3, r] + self.q0 - q_ref)
             en = np.sqrt(np.sum(e * e, 1))
             self.sq[r] += float(np.sum(en * en))
             self.mx[r] = max(self.mx[r], float(en.max()))
