@@ -112,7 +112,7 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     cum = {k: v[3] for k, v in st.stats.items()}
     total = cum[key(cf._compensate_file)]
     stages = {"G-code writer": key(GcodeWriter.feed), "streaming inverse": key(StreamingInverse.push),
-              "self-check re-plan": key(cf._self_check), "LPV prediction for the summary": key(cf._Predictor.push)}
+              "self-check re-plan": key(cf._self_check), "LPV prediction for the summary": key(cf._Predictor.flush)}
     print(f"\nTime profile of the first {n_lines:,} lines ({total:.1f} s under cProfile):\n")
     print("| part | share |\n|---|---|")
     for name, key in stages.items():

@@ -122,12 +122,21 @@ def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         foh = modal_foh(A[None], B[None], dt_s)
     lam, V = foh.lam[0], foh.V[0]
     g1, g2 = foh.g1[0], foh.g2[0]
+    n_all = len(lam)
+    z_init = np.zeros(n_all, complex) if z0 is None else np.asarray(z0, complex)
+    # real system, real inputs: of a complex-conjugate pair of modes, run one and double its part
+    # (eig returns conjugate eigenvectors for conjugate eigenvalues, so the states are conjugate)
+    up = np.nonzero(lam.imag > 0)[0]
+    lo = np.nonzero(lam.imag < 0)[0]
+    paired = 2 * len(up) == n_all
+    if paired:
+        partner = up[np.argmin(np.abs(lam[lo][:, None] - np.conj(lam[up])[None, :]), axis=1)]
+        lam, V, g1, g2, z_init = lam[up], V[:, up], g1[up], g2[up], z_init[up]
     e = np.exp(lam * dt_s)
     wn = np.concatenate([w[1:], w[-1:]])
     v = w @ (g1 - g2).T + wn @ g2.T  # (N, n): forcing of step k -> k+1
     n = len(lam)
     Z = np.empty((len(w), n), complex)
-    z_init = np.zeros(n, complex) if z0 is None else np.asarray(z0, complex)
     # z_k = e^k z0 + sum_{j<k} e^{k-1-j} v_j
     for i in range(n):
         forced = lfilter([1.0], [1.0, -e[i]], v[:, i])  # y_k = sum_{j<=k} e^{k-j} v_j
@@ -135,6 +144,10 @@ def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         if z_init[i] != 0:
             Z[1:, i] += z_init[i] * np.exp(lam[i] * dt_s * np.arange(1, len(w)))
         Z[0, i] = z_init[i]
-    x = (Z @ V.T).real
-    z_end = Z[-1]
+    if not paired:
+        return (Z @ V.T).real, Z[-1]
+    x = 2.0 * (Z @ V.T).real
+    z_end = np.empty(n_all, complex)  # every mode's state (the conjugates' too), to continue with
+    z_end[up] = Z[-1]
+    z_end[lo] = np.conj(z_end[partner])
     return x, z_end

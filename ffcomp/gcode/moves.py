@@ -12,7 +12,7 @@ for an extruder-only move ``s`` is the filament length and ``unit = (0, 0, 0, +-
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import NamedTuple
 
 __all__ = ["PlannedMove", "MOVE", "EXTRUDE", "DWELL"]
 
@@ -21,9 +21,10 @@ EXTRUDE = "extrude"
 DWELL = "dwell"
 
 
-@dataclass(frozen=True, slots=True)
-class PlannedMove:
-    """One executed move (or dwell) with its exact timing.
+class PlannedMove(NamedTuple):
+    """One executed move (or dwell) with its exact timing (immutable; a named tuple, because the
+    planners make one per move and a tuple is several times cheaper to build than a frozen
+    dataclass).
 
     Attributes
     ----------

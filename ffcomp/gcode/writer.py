@@ -96,7 +96,8 @@ class GcodeWriter:
 
     def __init__(self, lines: Iterator[GcodeLine], out: IO[str], dt_s: float, tol_mm: float,
                  moves: dict[int, PlannedMove], accel_mm_s2: float = float("inf"),
-                 max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf")):
+                 max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf"),
+                 segment_table: IO[bytes] | None = None):
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
@@ -109,12 +110,16 @@ class GcodeWriter:
         self.e_emitted = 0.0  # extrusion written so far (relative sum), mm
         self.e_ref_cum = 0.0  # reference extrusion accounted for so far, mm
         self.e_last_ref = None  # reference extruder position at the last emitted point
-        self.replaced: set[int] = set()  # source line numbers written as motion
+        self.replaced: set[int] = set()  # source line numbers written as motion (not yet flushed past)
+        self.n_replaced = 0  # source line numbers written as motion and forgotten
         self.done_moves: set[int] = set()  # planned move indices written
         self.prev_v = None
         self.after_hold = False
         self.nlines = 0  # body lines written
-        #: (body line number, first sample, last sample, catch-up flag) of every XYZ segment (self-check)
+        #: (body line number, first sample, last sample, catch-up flag) of every XYZ segment, for the
+        #: self-check: int64 rows written to ``segment_table`` (a binary file, so memory stays
+        #: bounded) or, without one, kept in :attr:`segments`
+        self.segment_table = segment_table
         self.segments = array("q")
         self._write = out.write
 
@@ -195,7 +200,13 @@ class GcodeWriter:
             if mv is not None:
                 self.done_moves.add(mv.index)
             self.replaced.add(ln)
-        self.stats.motion_lines_replaced = len(self.replaced)
+        self.n_replaced += len(self.replaced)
+        self.stats.motion_lines_replaced = self.n_replaced
+        # lines before the next source line to write are settled: forget them (bounded memory)
+        nxt = self.next_line.lineno if self.next_line is not None else runs[-1][5]
+        keep = {k for k in self.replaced if k >= nxt}
+        self.n_replaced -= len(keep)
+        self.replaced = keep
         last_mi = runs[-1][2]
         for old in [k for k in self.moves if k < last_mi - 2]:
             del self.moves[old]
@@ -208,7 +219,10 @@ class GcodeWriter:
                 base[r] = n0
             rows = chunk.seg_rows.copy()
             rows[:, 0] += base[chunk.seg_run]
-            self.segments.extend(rows.reshape(-1).tolist())
+            if self.segment_table is not None:
+                self.segment_table.write(rows.astype(np.int64).tobytes())
+            else:
+                self.segments.extend(rows.reshape(-1).tolist())
 
     def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list) -> "_Chunk":
         """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.

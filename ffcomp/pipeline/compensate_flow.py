@@ -117,8 +117,10 @@ class _Predictor:
     :func:`ffcomp.compensate.predict.predict_lpv`, split where it is exact.
     """
 
-    def __init__(self, model: LpvModel, dt_s: float, seg: int = 100):
-        self.model, self.dt, self.seg = model, dt_s, seg
+    def __init__(self, model: LpvModel, dt_s: float, seg: int = 100, batch: int = 16000):
+        self.model, self.dt, self.seg, self.batch = model, dt_s, seg, batch
+        self._buf: list = []
+        self._nbuf = 0
         mats = model.matrices(np.zeros((1, 3)) + [0, 0, model.geometry.z_min_m], check=False)
         d = [(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i]) for i in range(3)]
         self._mk = lambda: [[(DriveFilter(*d[i], dt_s), DriveFilter(*d[i], dt_s, derivative=True))
@@ -129,14 +131,31 @@ class _Predictor:
         self.reset()
 
     def reset(self):
+        self.flush()
         self.x = None
         self.w_last = None
         self.filters = self._mk()
 
     def push(self, q_cmd, q_ref, xyz_ref):
-        """Predict both the command (run 0) and the uncompensated reference (run 1)."""
+        """Predict both the command (run 0) and the uncompensated reference (run 1); samples are
+        gathered into batches of ``batch`` (fewer, larger array operations)."""
         if len(q_cmd) == 0:
             return
+        self._buf.append((q_cmd, q_ref, xyz_ref))
+        self._nbuf += len(q_cmd)
+        if self._nbuf >= self.batch:
+            self.flush()
+
+    def flush(self):
+        """Predict the gathered samples."""
+        if not self._buf:
+            return
+        q_cmd, q_ref, xyz_ref = (np.concatenate(a) for a in zip(*self._buf))
+        self._buf.clear()
+        self._nbuf = 0
+        self._predict(q_cmd, q_ref, xyz_ref)
+
+    def _predict(self, q_cmd, q_ref, xyz_ref):
         if self.x is None:
             self.q0 = q_ref[0].copy()
         ws = []
@@ -157,7 +176,7 @@ class _Predictor:
         xs, _ = simulate_piecewise(A, B, w, self.dt, self.seg, x0=self.x)
         self.x = xs[-1]
         self.w_last = w[-1:]
-        J = jacobian(self.model.geometry, xyz_ref)
+        J = jacobian(self.model.geometry, xyz_ref, q=q_ref)
         for r in range(2):
             e = matvec3(J, xs[prefix:, :3, r] + self.q0 - q_ref)
             en = np.sqrt(np.sum(e * e, 1))
@@ -234,17 +253,20 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     body_fd, body_path = tempfile.mkstemp(prefix=".ffcomp-body-", suffix=".gcode", dir=out_dir)
     qfile_fd, qfile = tempfile.mkstemp(prefix=".ffcomp-q-", suffix=".f32", dir=out_dir)
     os.close(qfile_fd)
+    seg_fd, segfile = tempfile.mkstemp(prefix=".ffcomp-seg-", suffix=".i64", dir=out_dir)
+    os.close(seg_fd)
     final_tmp = None
     try:
         moves: dict = {}
         plan = GcodePlan(src, profile, lenient=opts.lenient)
-        with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf:
+        with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf, \
+                open(segfile, "wb") as sf:
             lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
                                      home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm)))
             accel = header_accel(profile, opts)
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
-                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s)
+                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf)
             pred = _Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
@@ -291,6 +313,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer.finish()
         summ.warnings = plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
         summ.segments = writer.stats.segments
+        if pred is not None:
+            pred.flush()
         if pred is not None and pred.n:
             summ.rms_before_um, summ.max_before_um = pred.rms_um(1), pred.mx[1] * 1e6
             summ.rms_after_um, summ.max_after_um = pred.rms_um(0), pred.mx[0] * 1e6
@@ -312,7 +336,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             os.fsync(fo.fileno())
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
-            _self_check(final_tmp, qfile, profile, geom, summ, opts, writer.segments, len(head))
+            _self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
         # success: move into place
         if out_path is None:
             import shutil
@@ -327,7 +351,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             os.replace(final_tmp, out_path)
             final_tmp = None
     finally:
-        for p in (body_path, qfile, final_tmp):
+        for p in (body_path, qfile, segfile, final_tmp):
             if p and os.path.exists(p):
                 os.unlink(p)
     summ.wall_time_s = time.perf_counter() - t_wall
@@ -517,7 +541,7 @@ def _header(profile, opts: CompensateOptions, src: str, accel: float) -> tuple[l
 
 
 def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary, opts: CompensateOptions,
-                segments=None, head_len: int = 0) -> None:
+                segfile: str | None = None, head_len: int = 0) -> None:
     """Re-plan the output with the firmware-faithful planner and compare carriages with the intent.
 
     Every re-planned XYZ segment is sampled from its own start at the intended sample spacing and
@@ -526,10 +550,7 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     the whole file's duration is reported separately (``output_print_time_s``).
     """
     qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
-    # the writer's segment table: body line, first and last sample, catch-up flag (4 ints a row)
-    tab = np.frombuffer(segments, dtype=np.int64).reshape(-1, 4) if segments is not None and len(segments) \
-        else np.zeros((0, 4), np.int64)
-    seg_lines = tab[:, 0] + head_len
+    table = _SegmentTable(segfile, head_len)
     dt = 1.0 / profile.limits.sample_rate_hz
     worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
     worst_cu = 0.0
@@ -574,6 +595,8 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         geo = np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)
         # the segments the writer wrote, by their line in the output
         ln = R[:, 0].astype(np.int64)
+        tab = table.upto(int(ln[-1]))
+        seg_lines = tab[:, 0]
         j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
         ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
         R, geo, j = R[ok], geo[ok], j[ok]
@@ -599,6 +622,7 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     if buf:
         last = buf[-1]
     flush_moves()
+    table.close()
     t_end = last.t_end_s if last is not None else 0.0
     qf.close()
     summ.output_print_time_s = t_end
@@ -613,6 +637,33 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         raise SelfCheckError(
             f"self-check failed: the re-planned output strays {worst * 1e6:.1f} um from the intended carriage "
             f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
+
+
+class _SegmentTable:
+    """The writer's segment table (int64 rows: output line, first and last sample, catch-up flag),
+    read forward in step with the re-planned moves, which come in line order."""
+
+    def __init__(self, path: str | None, head_len: int):
+        self.f = open(path, "rb") if path else None
+        self.head_len = head_len
+        self.buf = np.zeros((0, 4), np.int64)
+
+    def upto(self, line: int) -> np.ndarray:
+        """Rows of output lines ``<= line`` not returned before (lines shifted by the header)."""
+        while self.f is not None and (not len(self.buf) or self.buf[-1, 0] <= line):
+            raw = self.f.read(32 * 65536)
+            if not raw:
+                break
+            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, 4).copy()
+            rows[:, 0] += self.head_len
+            self.buf = np.concatenate([self.buf, rows])
+        n = int(np.searchsorted(self.buf[:, 0], line, side="right"))
+        out, self.buf = self.buf[:n], self.buf[n:]
+        return out
+
+    def close(self) -> None:
+        if self.f is not None:
+            self.f.close()
 
 
 def _distance_v(a, v0, vc, ta, tc, tau):
