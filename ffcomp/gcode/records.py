@@ -13,7 +13,7 @@ times s.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Union
+from typing import NamedTuple, Union
 
 Pos4 = tuple  # (x, y, z, e) in mm
 
@@ -31,9 +31,9 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True, slots=True)
-class LinearMove:
-    """A straight move (G0/G1, or one segment of a split arc).
+class LinearMove(NamedTuple):
+    """A straight move (G0/G1, or one segment of a split arc); a named tuple, as one is made per
+    line.
 
     Attributes
     ----------
@@ -163,9 +163,8 @@ class ModeChange:
 Op = Union[LinearMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange]
 
 
-@dataclass(frozen=True, slots=True)
-class GcodeLine:
-    """One input line.
+class GcodeLine(NamedTuple):
+    """One input line (a named tuple: cheap to make, one per line).
 
     Attributes
     ----------

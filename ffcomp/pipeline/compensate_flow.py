@@ -616,7 +616,7 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
     last = None
     for mv in GcodePlan(path, profile, lenient=True):
         buf.append(mv)
-        if len(buf) >= 20000:
+        if len(buf) >= 5000:
             last = buf[-1]
             flush_moves()
     if buf:
