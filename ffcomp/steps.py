@@ -28,14 +28,17 @@ A step time is within ``max_error`` ticks of its exact time.  The plain format i
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import MeasurementError
 
-__all__ = ["step_events", "compress_steps", "expand_queue", "StepStream", "write_ffsteps", "read_ffsteps",
-           "positions_from_steps", "write_plain", "read_plain"]
+__all__ = ["step_events", "compress_steps", "expand_queue", "StepStream", "write_ffsteps", "FfstepsWriter",
+           "read_ffsteps", "ffsteps_max_error", "positions_from_steps", "write_plain", "write_plain_header",
+           "write_plain_rows", "read_plain"]
 
 STEPPERS = ("A", "B", "C")
 
@@ -68,7 +71,7 @@ def step_events(q_m: np.ndarray, t0_s: float, dt_s: float, steps_per_mm: float, 
     return t, d, n0
 
 
-def _fit(prev: int, seg: np.ndarray, max_error: int):
+def _fit_np(prev: int, seg: np.ndarray, max_error: int):
     """Best integer (interval, add) for steps ``seg`` after tick ``prev``, or None if over the bound.
 
     Least squares on ``t_k - prev = k interval + k (k - 1) / 2 add`` (2x2 normal equations in
@@ -96,6 +99,49 @@ def _fit(prev: int, seg: np.ndarray, max_error: int):
     return None
 
 
+def _fit_py(prev: int, seg: list, max_error: int):
+    """:func:`_fit` for short runs, in Python integers (numpy's per-call cost dominates there)."""
+    c = len(seg)
+    if c == 1:
+        return seg[0] - prev, 0
+    b1 = b2 = 0
+    g = 0
+    for k, s in enumerate(seg, 1):
+        y = s - prev
+        b1 += k * y
+        b2 += g * y
+        g += k
+    a11, a12, a22, det = _MOMENTS[c] if c < len(_MOMENTS) else _moments(c)
+    iv = (a22 * b1 - a12 * b2) / det
+    ad = (a11 * b2 - a12 * b1) / det
+    r = int(round(ad))
+    lo, hi = -max_error, max_error
+    for cand in (int(round(iv)), math.floor(iv), math.ceil(iv)):
+        pos = prev
+        step = cand
+        for s in seg:  # position after k steps: prev + k iv + add k (k - 1) / 2
+            pos += step
+            if not lo <= pos - s <= hi:
+                break
+            step += r
+        else:
+            return cand, r
+    return None
+
+
+def _moments(c: int) -> tuple[float, float, float, float]:
+    """``sum k^2``, ``sum k g``, ``sum g^2`` over ``k = 1..c``, ``g = k (k - 1) / 2`` (closed forms),
+    and the determinant of the normal equations."""
+    s2 = c * (c + 1) * (2 * c + 1) // 6
+    s3 = (c * (c + 1) // 2) ** 2
+    s4 = c * (c + 1) * (2 * c + 1) * (3 * c * c + 3 * c - 1) // 30
+    a11, a12, a22 = float(s2), (s3 - s2) / 2.0, (s4 - 2 * s3 + s2) / 4.0
+    return a11, a12, a22, a11 * a22 - a12 * a12
+
+
+_MOMENTS = [(0.0, 0.0, 0.0, 0.0)] + [_moments(c) for c in range(1, 129)]
+
+
 def compress_steps(ticks: np.ndarray, max_error: int, first_prev: int) -> list[tuple[int, int, int]]:
     """(interval, count, add) compression of one direction run of step ticks (Klipper's queue form).
 
@@ -105,10 +151,15 @@ def compress_steps(ticks: np.ndarray, max_error: int, first_prev: int) -> list[t
     """
     out = []
     ticks = np.asarray(ticks, np.int64)
+    tl = ticks.tolist()
     n = len(ticks)
     i = 0
     prev = int(first_prev)
     guess = 8
+
+    def _fit(prev, seg, max_error):  # short probes in Python integers, long ones with numpy
+        return _fit_py(prev, tl[i:i + len(seg)], max_error) if len(seg) <= 96 else _fit_np(prev, seg, max_error)
+
     while i < n:
         best = _fit(prev, ticks[i:i + 1], max_error) or (int(ticks[i] - prev), 0)
         best_c, lo, hi = 1, 1, None
@@ -177,31 +228,180 @@ def positions_from_steps(stream: StepStream, times_s: np.ndarray) -> np.ndarray:
     return out
 
 
-def write_ffsteps(f, per_stepper: dict, steps_per_mm: float, start_steps, clock_hz: int = 10_000_000,
-                  max_error_s: float = 5e-6) -> int:
-    """Write the compact format to an open text file; returns the number of queue lines."""
+def _ffsteps_header(f, steps_per_mm: float, start_steps, clock_hz: int, max_error_s: float) -> None:
     f.write("# ffcomp-steps 1\n")
     f.write(f"# clock_hz: {clock_hz}\n# steps_per_mm: {steps_per_mm:.10g}\n")
     f.write(f"# start_steps: {' '.join(str(int(v)) for v in start_steps)}\n# start_time_s: 0.0\n")
     f.write(f"# max_error_s: {max_error_s:g}\n")
+
+
+class _RunCompressor:
+    """One stepper's queue lines, written run by run as step times arrive in chunks.
+
+    A direction run is compressed once it is complete (the next step goes the other way, or
+    :meth:`finish`), so only the open run is held in memory.
+    """
+
+    def __init__(self, name: str, out, clock_hz: int, max_err_ticks: int):
+        self.name, self.out, self.clock, self.max_err = name, out, clock_hz, max_err_ticks
+        self.pending: list[np.ndarray] = []
+        self.dir = 0
+        self.lines = 0
+
+    def push(self, t_s: np.ndarray, d: np.ndarray) -> None:
+        if len(t_s) == 0:
+            return
+        ticks = np.rint(np.asarray(t_s) * self.clock).astype(np.int64)
+        d = np.asarray(d)
+        cut = (np.nonzero(np.diff(d))[0] + 1).tolist()
+        for a, b in zip([0] + cut, cut + [len(d)]):
+            da = int(d[a])
+            if self.pending and da != self.dir:
+                self._flush()
+            self.pending.append(ticks[a:b])
+            self.dir = da
+
+    def finish(self) -> int:
+        self._flush()
+        return self.lines
+
+    def _flush(self) -> None:
+        if not self.pending:
+            return
+        run = np.concatenate(self.pending)
+        self.pending = []
+        first_prev = int(run[0]) - (int(run[1] - run[0]) if len(run) > 1 else 1)
+        entries = compress_steps(run, self.max_err, first_prev)
+        name, sd = self.name, f"{self.dir:+d}"
+        e0 = entries[0]
+        lines = [f"{name} {sd} {first_prev} {e0[0]} {e0[1]} {e0[2]}\n"]
+        lines += [f"{name} {sd} {iv} {c} {ad}\n" for iv, c, ad in entries[1:]]
+        self.out.write("".join(lines))
+        self.lines += len(entries)
+
+
+def write_ffsteps(f, per_stepper: dict, steps_per_mm: float, start_steps, clock_hz: int = 10_000_000,
+                  max_error_s: float = 5e-6) -> int:
+    """Write the compact format to an open text file; returns the number of queue lines."""
+    _ffsteps_header(f, steps_per_mm, start_steps, clock_hz, max_error_s)
     max_err = max(1, int(round(max_error_s * clock_hz)))
     n_lines = 0
     for name in STEPPERS:
         t, d = per_stepper[name]
-        if len(t) == 0:
-            continue
-        ticks = np.rint(np.asarray(t) * clock_hz).astype(np.int64)
-        # runs of one direction
-        cut = np.nonzero(np.diff(d))[0] + 1
-        for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [len(d)]])):
-            run = ticks[a:b]
-            first_prev = int(run[0]) - (int(run[1] - run[0]) if len(run) > 1 else 1)
-            entries = compress_steps(run, max_err, first_prev)
-            f.write(f"{name} {int(d[a]):+d} {first_prev} {entries[0][0]} {entries[0][1]} {entries[0][2]}\n")
-            for e in entries[1:]:
-                f.write(f"{name} {int(d[a]):+d} {e[0]} {e[1]} {e[2]}\n")
-            n_lines += len(entries)
+        rc = _RunCompressor(name, f, clock_hz, max_err)
+        rc.push(t, d)
+        n_lines += rc.finish()
     return n_lines
+
+
+class FfstepsWriter:
+    """The compact format, streamed: push each stepper's steps chunk by chunk (in time order), then
+    :meth:`finish`.  The format groups lines by stepper, so each stepper's lines go to a temporary
+    file beside ``path`` until the end; memory holds only each stepper's open direction run.
+    """
+
+    def __init__(self, path: str, steps_per_mm: float, clock_hz: int = 10_000_000, max_error_s: float = 5e-6):
+        self.path, self.spm, self.clock, self.max_error_s = path, steps_per_mm, clock_hz, max_error_s
+        max_err = max(1, int(round(max_error_s * clock_hz)))
+        self._parts = {n: f"{path}.{n}.part" for n in STEPPERS}
+        self._files = {n: open(self._parts[n], "w", encoding="utf-8") for n in STEPPERS}
+        self._rc = {n: _RunCompressor(n, self._files[n], clock_hz, max_err) for n in STEPPERS}
+        self.start_steps = (0, 0, 0)
+
+    def push(self, name: str, t_s: np.ndarray, d: np.ndarray) -> None:
+        self._rc[name].push(t_s, d)
+
+    def finish(self) -> int:
+        """Write ``path`` (header, then the steppers' lines); returns the number of queue lines."""
+        n = sum(rc.finish() for rc in self._rc.values())
+        for f in self._files.values():
+            f.close()
+        with open(self.path, "w", encoding="utf-8") as out:
+            _ffsteps_header(out, self.spm, self.start_steps, self.clock, self.max_error_s)
+            for name in STEPPERS:
+                with open(self._parts[name], encoding="utf-8") as part:
+                    while True:
+                        buf = part.read(1 << 20)
+                        if not buf:
+                            break
+                        out.write(buf)
+        self.close()
+        return n
+
+    def close(self) -> None:
+        """Remove the temporary parts (also after a failure)."""
+        for name in STEPPERS:
+            f = self._files[name]
+            if not f.closed:
+                f.close()
+            if os.path.exists(self._parts[name]):
+                os.unlink(self._parts[name])
+
+
+def ffsteps_max_error(path: str, times_s: np.ndarray, q_m: np.ndarray) -> float:
+    """Largest difference, in steps, between a ``.ffsteps`` file and carriage positions ``q_m``
+    (N, 3) at ``times_s`` (sorted), read run by run (memory holds one direction run at a time)."""
+    head, worst = {}, 0.0
+    state: dict = {}
+
+    def settle(name, upto_tick=None):
+        """Positions of the samples before ``upto_tick`` (all remaining ones if None)."""
+        nonlocal worst
+        st = state[name]
+        i0 = st["ti"]
+        i1 = len(times_s) if upto_tick is None else int(np.searchsorted(ticks_s, upto_tick, side="left"))
+        if i1 > i0:
+            err = np.abs(st["n"] - q_m[i0:i1, st["col"]] * 1e3 * spm)
+            worst = max(worst, float(err.max()))
+            st["ti"] = i1
+
+    def run_done(name, d, entries, first_prev):
+        nonlocal worst
+        st = state[name]
+        ticks = expand_queue(first_prev, entries)
+        settle(name, ticks[0])  # samples before the run: the count before it
+        i0 = st["ti"]
+        i1 = int(np.searchsorted(ticks_s, ticks[-1], side="right"))
+        if i1 > i0:
+            k = np.searchsorted(ticks, ticks_s[i0:i1], side="right")
+            err = np.abs(st["n"] + d * k - q_m[i0:i1, st["col"]] * 1e3 * spm)
+            worst = max(worst, float(err.max()))
+            st["ti"] = i1
+        st["n"] += d * len(ticks)
+
+    cur = None  # (name, dir, entries, first_prev)
+    ticks_s = None
+    with open(path, encoding="utf-8") as f:
+        for raw in f:
+            if raw.startswith("#"):
+                k, _, v = raw[1:].partition(":")
+                head[k.strip()] = v.strip()
+                continue
+            parts = raw.split()
+            if not parts:
+                continue
+            if ticks_s is None:  # header complete
+                clock, spm = float(head["clock_hz"]), float(head["steps_per_mm"])
+                start = [int(v) for v in head["start_steps"].split()]
+                ticks_s = np.asarray(times_s, float) * clock
+                state = {n: {"n": start[i], "ti": 0, "col": i} for i, n in enumerate(STEPPERS)}
+            name, d, nums = parts[0], int(parts[1]), [int(v) for v in parts[2:]]
+            if len(nums) == 4:
+                if cur is not None:
+                    run_done(*cur)
+                cur = (name, d, [tuple(nums[1:])], nums[0])
+            else:
+                cur[2].append(tuple(nums))
+    if ticks_s is None:
+        clock, spm = float(head["clock_hz"]), float(head["steps_per_mm"])
+        start = [int(v) for v in head["start_steps"].split()]
+        ticks_s = np.asarray(times_s, float) * clock
+        state = {n: {"n": start[i], "ti": 0, "col": i} for i, n in enumerate(STEPPERS)}
+    if cur is not None:
+        run_done(*cur)
+    for name in STEPPERS:
+        settle(name)
+    return worst
 
 
 def read_ffsteps(path: str) -> StepStream:
@@ -270,18 +470,27 @@ def write_plain(path: str, per_stepper: dict, steps_per_mm: float, start_steps) 
             np.savez_compressed(f, **arrays)
         return
     with open(path, "w", encoding="utf-8") as f:
-        f.write(f"# ffcomp-steps-csv 1\n# steps_per_mm: {steps_per_mm:.10g}\n")
-        f.write(f"# start_steps: {' '.join(str(int(v)) for v in start_steps)}\ntime_s,stepper,dir\n")
-        rows = []
-        for n in STEPPERS:
-            tt, dd = per_stepper[n]
-            rows.append((np.asarray(tt), np.full(len(tt), n), np.asarray(dd)))
-        T = np.concatenate([r[0] for r in rows])
-        S = np.concatenate([r[1] for r in rows])
-        D = np.concatenate([r[2] for r in rows])
-        o = np.argsort(T, kind="stable")
-        for a, b, c in zip(T[o], S[o], D[o]):
-            f.write(f"{a:.9f},{b},{int(c):+d}\n")
+        write_plain_header(f, steps_per_mm, start_steps)
+        write_plain_rows(f, per_stepper)
+
+
+def write_plain_header(f, steps_per_mm: float, start_steps) -> None:
+    """The CSV header (see :func:`write_plain`)."""
+    f.write(f"# ffcomp-steps-csv 1\n# steps_per_mm: {steps_per_mm:.10g}\n")
+    f.write(f"# start_steps: {' '.join(str(int(v)) for v in start_steps)}\ntime_s,stepper,dir\n")
+
+
+def write_plain_rows(f, per_stepper: dict) -> None:
+    """CSV rows of the steps in ``per_stepper`` (name -> (times s, dirs)), in time order."""
+    rows = []
+    for n in STEPPERS:
+        tt, dd = per_stepper[n]
+        rows.append((np.asarray(tt), np.full(len(tt), n), np.asarray(dd)))
+    T = np.concatenate([r[0] for r in rows])
+    S = np.concatenate([r[1] for r in rows])
+    D = np.concatenate([r[2] for r in rows])
+    o = np.argsort(T, kind="stable")
+    f.write("".join(f"{a:.9f},{b},{c:+d}\n" for a, b, c in zip(T[o].tolist(), S[o].tolist(), D[o].tolist())))
 
 
 def read_plain(path: str) -> StepStream:

@@ -15,7 +15,17 @@ import numpy as np
 
 from ..gcode.planner import GcodePlan
 from ..model.lpv import LpvModel
-from ..steps import STEPPERS, positions_from_steps, read_ffsteps, read_plain, step_events, write_ffsteps, write_plain
+from ..steps import (
+    STEPPERS,
+    FfstepsWriter,
+    ffsteps_max_error,
+    positions_from_steps,
+    read_plain,
+    step_events,
+    write_plain,
+    write_plain_header,
+    write_plain_rows,
+)
 from .compensate_flow import CompensateOptions, CompensationSummary, compensated_stream, inverse_config
 
 __all__ = ["StepsSummary", "steps_file"]
@@ -41,7 +51,11 @@ class StepsSummary:
 def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient: bool = False,
                csv: bool = False) -> StepsSummary:
     """Compensate ``src`` and write its step stream to ``out_path`` (``.ffsteps`` compact; with
-    ``csv`` the plain CSV, or NPZ if the name ends in ``.npz``).  Checks the reconstruction."""
+    ``csv`` the plain CSV, or NPZ if the name ends in ``.npz``).  Checks the reconstruction.
+
+    The compact and CSV formats are streamed (memory holds one chunk, and each stepper's open
+    direction run); NPZ holds every step time in memory until it is written.
+    """
     t0 = time.perf_counter()
     model = LpvModel.from_profile(profile)
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -50,54 +64,111 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     icfg = inverse_config(profile, opts)
     summ_c = CompensationSummary(source=src, output=out_path, method=method)
     plan = GcodePlan(src, profile, lenient=lenient)
-    per = {n: ([], []) for n in STEPPERS}
-    n0 = None
-    k = 0
-    qs = []
-    last = None
-    for qc, _meta in compensated_stream(plan, {}, profile, model, icfg, opts, summ_c, src):
-        # keep one sample of overlap so crossings between chunks are found
-        block = qc if last is None else np.vstack([last, qc])
-        t_start = (k - (0 if k == 0 else 1)) * dt
-        starts = []
-        for i, name in enumerate(STEPPERS):
-            t, d, s0 = step_events(block[:, i], t_start, dt, spm,
-                                   None if n0 is None else int(np.rint(block[0, i] * 1e3 * spm)))
-            per[name][0].append(t)
-            per[name][1].append(d)
-            starts.append(s0)
-        if n0 is None:
-            n0 = tuple(starts)
-        last = qc[-1:]
-        qs.append(qc[::10].copy())
-        k += len(qc)
-    tt = {n: (np.concatenate(per[n][0]) if per[n][0] else np.zeros(0),
-              np.concatenate(per[n][1]) if per[n][1] else np.zeros(0, np.int8)) for n in STEPPERS}
+    npz = out_path.endswith(".npz")
+    plain = csv or npz
     out_dir = os.path.dirname(os.path.abspath(out_path))
     fd, tmp = tempfile.mkstemp(prefix=".ffcomp-steps-", suffix=os.path.splitext(out_path)[1], dir=out_dir)
-    summ = StepsSummary(src, out_path, method, print_time_s=k * dt, restarts=summ_c.restarts)
+    os.close(fd)
+    summ = StepsSummary(src, out_path, method, restarts=0)
+    sink = None
     try:
-        if csv or out_path.endswith(".npz"):
-            os.close(fd)
-            write_plain(tmp, tt, spm, n0 or (0, 0, 0))
-            stream = read_plain(tmp)
+        if npz:
+            sink = _NpzSink(spm)
+        elif csv:
+            sink = _CsvSink(tmp, spm)
         else:
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                summ.queue_lines = write_ffsteps(f, tt, spm, n0 or (0, 0, 0))
-            stream = read_ffsteps(tmp)
-        # reconstruction check on every 10th sample
+            sink = FfstepsWriter(tmp, spm)
+        n0 = None
+        k = 0
+        qs = []
+        last = None
+        n_steps = 0
+        for qc, _meta in compensated_stream(plan, {}, profile, model, icfg, opts, summ_c, src):
+            # keep one sample of overlap so crossings between chunks are found
+            block = qc if last is None else np.vstack([last, qc])
+            t_start = (k - (0 if k == 0 else 1)) * dt
+            starts, ev = [], {}
+            for i, name in enumerate(STEPPERS):
+                t, d, s0 = step_events(block[:, i], t_start, dt, spm,
+                                       None if n0 is None else int(np.rint(block[0, i] * 1e3 * spm)))
+                ev[name] = (t, d)
+                n_steps += len(t)
+                starts.append(s0)
+            if n0 is None:
+                n0 = tuple(starts)
+                sink.start_steps = n0
+            if plain:
+                sink.push_chunk(ev)
+            else:
+                for name, (t, d) in ev.items():
+                    sink.push(name, t, d)
+            last = qc[-1:]
+            qs.append(qc[::10].copy())
+            k += len(qc)
+        summ.print_time_s = k * dt
+        summ.restarts = summ_c.restarts
+        if plain:
+            sink.finish(tmp)
+        else:
+            summ.queue_lines = sink.finish()
+        # reconstruction check on every 10th sample, read back from the written file
         q = np.concatenate(qs) if qs else np.zeros((0, 3))
         ts = np.arange(len(q)) * 10 * dt
         if len(q):
-            rec = positions_from_steps(stream, ts)
-            summ.max_step_error_steps = float(np.max(np.abs(rec - q)) * 1e3 * spm)
-        summ.steps = stream.n_steps()
+            if plain:
+                rec = positions_from_steps(read_plain(tmp), ts)
+                summ.max_step_error_steps = float(np.max(np.abs(rec - q)) * 1e3 * spm)
+            else:
+                summ.max_step_error_steps = ffsteps_max_error(tmp, ts, q)
+        summ.steps = n_steps
         os.chmod(tmp, 0o644)
         os.replace(tmp, out_path)
         tmp = None
     finally:
+        if isinstance(sink, FfstepsWriter):
+            sink.close()
         if tmp and os.path.exists(tmp):
             os.unlink(tmp)
     summ.wall_time_s = time.perf_counter() - t0
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
+
+
+class _CsvSink:
+    """Plain CSV, streamed: each chunk's steps (all later than the previous chunk's) sorted by time."""
+
+    def __init__(self, path: str, spm: float):
+        self.f = open(path, "w", encoding="utf-8")
+        self.spm = spm
+        self.start_steps = (0, 0, 0)
+        self._head = False
+
+    def push_chunk(self, ev: dict) -> None:
+        if not self._head:
+            write_plain_header(self.f, self.spm, self.start_steps)
+            self._head = True
+        write_plain_rows(self.f, ev)
+
+    def finish(self, path: str) -> None:
+        if not self._head:
+            write_plain_header(self.f, self.spm, self.start_steps)
+        self.f.close()
+
+
+class _NpzSink:
+    """NPZ needs whole arrays: the step times are gathered in memory and written at the end."""
+
+    def __init__(self, spm: float):
+        self.per = {n: ([], []) for n in STEPPERS}
+        self.start_steps = (0, 0, 0)
+        self.spm = spm
+
+    def push_chunk(self, ev: dict) -> None:
+        for n, (t, d) in ev.items():
+            self.per[n][0].append(t)
+            self.per[n][1].append(d)
+
+    def finish(self, path: str) -> None:
+        tt = {n: (np.concatenate(self.per[n][0]) if self.per[n][0] else np.zeros(0),
+                  np.concatenate(self.per[n][1]) if self.per[n][1] else np.zeros(0, np.int8)) for n in STEPPERS}
+        write_plain(path, tt, self.spm, self.start_steps)
