@@ -37,7 +37,7 @@ import numpy as np
 from .errors import MeasurementError
 
 __all__ = ["step_events", "compress_steps", "expand_queue", "StepStream", "write_ffsteps", "FfstepsWriter",
-           "read_ffsteps", "ffsteps_max_error", "positions_from_steps", "write_plain", "write_plain_header",
+           "read_ffsteps", "ffsteps_max_error", "SampleFile", "positions_from_steps", "write_plain", "write_plain_header",
            "write_plain_rows", "read_plain"]
 
 STEPPERS = ("A", "B", "C")
@@ -338,39 +338,48 @@ class FfstepsWriter:
                 os.unlink(self._parts[name])
 
 
-def ffsteps_max_error(path: str, times_s: np.ndarray, q_m: np.ndarray) -> float:
-    """Largest difference, in steps, between a ``.ffsteps`` file and carriage positions ``q_m``
-    (N, 3) at ``times_s`` (sorted), read run by run (memory holds one direction run at a time)."""
-    head, worst = {}, 0.0
-    state: dict = {}
+def ffsteps_max_error(path: str, q_m, dt_s: float) -> float:
+    """Largest difference, in steps, between a ``.ffsteps`` file and carriage positions.
 
-    def settle(name, upto_tick=None):
-        """Positions of the samples before ``upto_tick`` (all remaining ones if None)."""
+    ``q_m`` holds the positions (m) at times ``0, dt_s, 2 dt_s, ...``: an (N, 3) array or anything
+    whose ``q_m[i0:i1]`` gives those rows (e.g. :class:`SampleFile`, so long files need not be in
+    memory).  The file is read run by run; memory holds one direction run at a time.
+    """
+    head, worst = {}, 0.0
+    n_q = len(q_m)
+    state: dict = {}
+    prm: dict = {}
+
+    def n_before(tick, right: bool) -> int:
+        """Samples at times ``< tick`` (``<= tick`` with ``right``)."""
+        x = tick / prm["dtc"]
+        i = math.floor(x) + 1 if right else math.ceil(x)
+        return min(max(int(i), 0), n_q)
+
+    def compare(st, i0, i1, counts):
         nonlocal worst
-        st = state[name]
-        i0 = st["ti"]
-        i1 = len(times_s) if upto_tick is None else int(np.searchsorted(ticks_s, upto_tick, side="left"))
         if i1 > i0:
-            err = np.abs(st["n"] - q_m[i0:i1, st["col"]] * 1e3 * spm)
-            worst = max(worst, float(err.max()))
+            q = np.asarray(q_m[i0:i1])[:, st["col"]]
+            worst = max(worst, float(np.max(np.abs(counts - q * 1e3 * prm["spm"]))))
             st["ti"] = i1
 
     def run_done(name, d, entries, first_prev):
-        nonlocal worst
         st = state[name]
         ticks = expand_queue(first_prev, entries)
-        settle(name, ticks[0])  # samples before the run: the count before it
-        i0 = st["ti"]
-        i1 = int(np.searchsorted(ticks_s, ticks[-1], side="right"))
+        compare(st, st["ti"], n_before(int(ticks[0]), False), st["n"])  # before the run
+        i0, i1 = st["ti"], n_before(int(ticks[-1]), True)
         if i1 > i0:
-            k = np.searchsorted(ticks, ticks_s[i0:i1], side="right")
-            err = np.abs(st["n"] + d * k - q_m[i0:i1, st["col"]] * 1e3 * spm)
-            worst = max(worst, float(err.max()))
-            st["ti"] = i1
+            k = np.searchsorted(ticks, np.arange(i0, i1) * prm["dtc"], side="right")
+            compare(st, i0, i1, st["n"] + d * k)
         st["n"] += d * len(ticks)
 
+    def start():
+        prm["spm"] = float(head["steps_per_mm"])
+        prm["dtc"] = dt_s * float(head["clock_hz"])
+        first = [int(v) for v in head["start_steps"].split()]
+        state.update({n: {"n": first[i], "ti": 0, "col": i} for i, n in enumerate(STEPPERS)})
+
     cur = None  # (name, dir, entries, first_prev)
-    ticks_s = None
     with open(path, encoding="utf-8") as f:
         for raw in f:
             if raw.startswith("#"):
@@ -380,11 +389,8 @@ def ffsteps_max_error(path: str, times_s: np.ndarray, q_m: np.ndarray) -> float:
             parts = raw.split()
             if not parts:
                 continue
-            if ticks_s is None:  # header complete
-                clock, spm = float(head["clock_hz"]), float(head["steps_per_mm"])
-                start = [int(v) for v in head["start_steps"].split()]
-                ticks_s = np.asarray(times_s, float) * clock
-                state = {n: {"n": start[i], "ti": 0, "col": i} for i, n in enumerate(STEPPERS)}
+            if not state:  # the header is complete
+                start()
             name, d, nums = parts[0], int(parts[1]), [int(v) for v in parts[2:]]
             if len(nums) == 4:
                 if cur is not None:
@@ -392,16 +398,47 @@ def ffsteps_max_error(path: str, times_s: np.ndarray, q_m: np.ndarray) -> float:
                 cur = (name, d, [tuple(nums[1:])], nums[0])
             else:
                 cur[2].append(tuple(nums))
-    if ticks_s is None:
-        clock, spm = float(head["clock_hz"]), float(head["steps_per_mm"])
-        start = [int(v) for v in head["start_steps"].split()]
-        ticks_s = np.asarray(times_s, float) * clock
-        state = {n: {"n": start[i], "ti": 0, "col": i} for i, n in enumerate(STEPPERS)}
+    if not state:
+        start()
     if cur is not None:
         run_done(*cur)
-    for name in STEPPERS:
-        settle(name)
+    for name in STEPPERS:  # after the last step: the final count
+        st = state[name]
+        compare(st, st["ti"], n_q, st["n"])
     return worst
+
+
+class SampleFile:
+    """(N, 3) float64 rows appended to a binary file and read back by row ranges (``f[i0:i1]``)."""
+
+    def __init__(self, path: str):
+        self.path = path
+        self._w = open(path, "wb")
+        self._r = None
+        self.n = 0
+
+    def append(self, rows: np.ndarray) -> None:
+        rows = np.ascontiguousarray(rows, dtype=np.float64).reshape(-1, 3)
+        self._w.write(rows.tobytes())
+        self.n += len(rows)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, sl: slice) -> np.ndarray:
+        i0, i1, _ = sl.indices(self.n)
+        if self._r is None:
+            self._w.flush()
+            self._r = open(self.path, "rb")
+        self._r.seek(i0 * 24)
+        return np.fromfile(self._r, dtype=np.float64, count=max(i1 - i0, 0) * 3).reshape(-1, 3)
+
+    def close(self) -> None:
+        for f in (self._w, self._r):
+            if f is not None:
+                f.close()
+        if os.path.exists(self.path):
+            os.unlink(self.path)
 
 
 def read_ffsteps(path: str) -> StepStream:

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from ffcomp.steps import (
     STEPPERS,
     FfstepsWriter,
+    SampleFile,
     compress_steps,
     expand_queue,
     ffsteps_max_error,
@@ -76,9 +77,21 @@ def test_streamed_ffsteps_equal_whole_array_writing(tmp_path_factory, seed, cuts
     ts = np.arange(0, len(q), 7) * DT
     rec = positions_from_steps(read_ffsteps(str(path)), ts)
     want = float(np.max(np.abs(rec - q[::7])) * 1e3 * SPM)
-    assert abs(ffsteps_max_error(str(path), ts, q[::7]) - want) < 1e-9
+    assert abs(ffsteps_max_error(str(path), q[::7], 7 * DT) - want) < 1e-9
     v_steps_s = np.max(np.abs(np.diff(q, axis=0))) / DT * 1e3 * SPM
     assert want <= 0.5 + 5e-6 * v_steps_s + 1e-9  # half a step plus the 5 us tick tolerance at speed
+
+
+def test_sample_file_round_trip(tmp_path):
+    rows = np.random.default_rng(1).normal(size=(1000, 3))
+    f = SampleFile(str(tmp_path / "q.bin"))
+    for a in range(0, 1000, 137):
+        f.append(rows[a:a + 137])
+    assert len(f) == 1000
+    np.testing.assert_array_equal(f[250:260], rows[250:260])
+    np.testing.assert_array_equal(f[0:1000], rows)
+    f.close()
+    assert not (tmp_path / "q.bin").exists()
 
 
 def test_streamed_csv_equals_whole_file(tmp_path):

@@ -18,6 +18,7 @@ from ..model.lpv import LpvModel
 from ..steps import (
     STEPPERS,
     FfstepsWriter,
+    SampleFile,
     ffsteps_max_error,
     positions_from_steps,
     read_plain,
@@ -70,7 +71,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     fd, tmp = tempfile.mkstemp(prefix=".ffcomp-steps-", suffix=os.path.splitext(out_path)[1], dir=out_dir)
     os.close(fd)
     summ = StepsSummary(src, out_path, method, restarts=0)
-    sink = None
+    sink = qs = None
     try:
         if npz:
             sink = _NpzSink(spm)
@@ -80,10 +81,15 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
             sink = FfstepsWriter(tmp, spm)
         n0 = None
         k = 0
-        qs = []
+        qs = SampleFile(tmp + ".q")  # every 10th command, for the read-back check (on disk)
         last = None
         n_steps = 0
-        for qc, _meta in compensated_stream(plan, {}, profile, model, icfg, opts, summ_c, src):
+        moves: dict = {}
+        for qc, meta in compensated_stream(plan, moves, profile, model, icfg, opts, summ_c, src):
+            # the planned moves are needed only while their samples are in flight (bounded memory)
+            mi0 = int(meta["move_index"][0]) - 2
+            for old in [m for m in moves if m < mi0]:
+                del moves[old]
             # keep one sample of overlap so crossings between chunks are found
             block = qc if last is None else np.vstack([last, qc])
             t_start = (k - (0 if k == 0 else 1)) * dt
@@ -103,7 +109,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
                 for name, (t, d) in ev.items():
                     sink.push(name, t, d)
             last = qc[-1:]
-            qs.append(qc[::10].copy())
+            qs.append(qc[(-k) % 10::10])
             k += len(qc)
         summ.print_time_s = k * dt
         summ.restarts = summ_c.restarts
@@ -112,19 +118,20 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
         else:
             summ.queue_lines = sink.finish()
         # reconstruction check on every 10th sample, read back from the written file
-        q = np.concatenate(qs) if qs else np.zeros((0, 3))
-        ts = np.arange(len(q)) * 10 * dt
-        if len(q):
+        if len(qs):
             if plain:
-                rec = positions_from_steps(read_plain(tmp), ts)
+                q = qs[0:len(qs)]
+                rec = positions_from_steps(read_plain(tmp), np.arange(len(q)) * 10 * dt)
                 summ.max_step_error_steps = float(np.max(np.abs(rec - q)) * 1e3 * spm)
             else:
-                summ.max_step_error_steps = ffsteps_max_error(tmp, ts, q)
+                summ.max_step_error_steps = ffsteps_max_error(tmp, qs, 10 * dt)
         summ.steps = n_steps
         os.chmod(tmp, 0o644)
         os.replace(tmp, out_path)
         tmp = None
     finally:
+        if qs is not None:
+            qs.close()
         if isinstance(sink, FfstepsWriter):
             sink.close()
         if tmp and os.path.exists(tmp):
