@@ -250,7 +250,7 @@ class GcodeWriter:
                 lead_e.append(e_last)
                 catch.append(after_hold and b - a + 1 > 2)
                 follows_hold[r] = after_hold
-                last_pt, after_hold = X[b - 1], False
+                last_pt, after_hold = np.round(X[b - 1], 4), False  # as written
             else:
                 if kind == EXTRUDE and mv.index not in self.done_moves:
                     ext_de[r] = mv.end_mm[3] - mv.start_mm[3]
