@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from trajectories import square, trapezoid_path
 
 from ffcomp.compensate.inverse import InverseConfig, _derivatives, invert
@@ -86,3 +88,41 @@ def test_bounds_are_enforced_with_osqp(model, paths):
     free = _rms_um(model, X, q, invert(model, q, X, 1e-3).q_cmd)
     bounded = _rms_um(model, X, q, out)
     assert free < bounded < 0.5 * before  # less correction allowed, still far better than none
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.2, 5.0))
+def test_convex_hull_pretest_never_hides_a_violation(seed, scale):
+    """``_surely_within`` may say "check exactly" too often, never "fine" when a bound breaks:
+    value, velocity and acceleration of the spline stay within the bounds whenever it passes."""
+    from types import SimpleNamespace
+
+    from ffcomp.compensate.bspline import UniformBasis
+    from ffcomp.compensate.stream import FbsStream
+
+    rng = np.random.default_rng(seed)
+    basis = UniformBasis(5, 4, 1e-3)
+    coef = np.cumsum(rng.normal(0, 2e-6 * scale, (60, 1)), axis=0)
+    n = 60 * basis.m + basis.support
+    bounds = (1e-4, 0.02, 8.0)  # m, m/s, m/s^2: near what such coefficients reach
+    fake = SimpleNamespace(bounds=bounds, m=basis.m, basis=basis, rvel=np.zeros((n, 1)), racc=np.zeros((n, 1)))
+    ok = FbsStream._surely_within(fake, coef[:20], coef[20:], 0, n)
+    s0, s1, s2 = (basis.evaluate(coef, n, deriv=k) for k in (0, 1, 2))
+    inside = (np.max(np.abs(s0)) <= bounds[0] and np.max(np.abs(s1)) <= bounds[1]
+              and np.max(np.abs(s2)) <= bounds[2])
+    assert inside or not ok
+
+
+def test_convex_hull_pretest_passes_small_and_flags_large_corrections():
+    from types import SimpleNamespace
+
+    from ffcomp.compensate.bspline import UniformBasis
+    from ffcomp.compensate.stream import FbsStream
+
+    basis = UniformBasis(5, 4, 1e-3)
+    n = 400
+    fake = SimpleNamespace(bounds=(1e-4, 0.02, 8.0), m=basis.m, basis=basis, rvel=np.zeros((n, 1)),
+                           racc=np.zeros((n, 1)))
+    smooth = 1e-6 * np.sin(np.arange(60) / 9.0)[:, None]
+    assert FbsStream._surely_within(fake, smooth[:20], smooth[20:], 0, n)
+    assert not FbsStream._surely_within(fake, smooth[:20] * 200, smooth[20:] * 200, 0, n)
