@@ -1,7 +1,7 @@
 """Benchmark: compensation speed and memory on the big real-slicer file, and the accuracy/time
 trade-off of the inverse variants.
 
-Run: ``python benchmarks/bench_compensate.py [--file F] [--quick]``.  The big sample
+Run: ``python benchmarks/bench_compensate.py [--file F] [--quick] [--profile] [--steps]``.  The big sample
 (samples/large/plate_prusa.gcode, ~244k lines, ~3.4 h of printing) is regenerated with PrusaSlicer
 if missing (``python samples/make_samples.py --large``).  One thread; prints a Markdown table.
 """
@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 BIG = ROOT / "samples" / "large" / "plate_prusa.gcode"
 
 
-def run_file(path: Path, args: list[str]) -> dict:
+def run_file(path: Path, args: list[str], suffix: str = ".gcode") -> dict:
     """One compensation in a fresh process (so peak memory is its own)."""
-    out = Path("/tmp") / f"bench_out_{os.getpid()}.gcode"
+    out = Path("/tmp") / f"bench_out_{os.getpid()}{suffix}"
     cmd = [sys.executable, "-c",
            "import resource, sys, json; from ffcomp.cli import main\n"
            "try:\n    main(sys.argv[1:])\nexcept SystemExit as e:\n    code = e.code\n"
@@ -126,6 +126,7 @@ def main() -> None:
     ap.add_argument("--file", type=Path, default=BIG)
     ap.add_argument("--quick", action="store_true", help="first 20,000 lines of the file only")
     ap.add_argument("--profile", action="store_true", help="only the time profile of the first 12,000 lines")
+    ap.add_argument("--steps", action="store_true", help="only the step-stream output (--format steps)")
     a = ap.parse_args()
     path = a.file
     if not path.exists() and path == BIG:
@@ -143,6 +144,14 @@ def main() -> None:
         path = q
     n_lines = sum(1 for _ in open(path))
     print(f"file: {path} ({n_lines:,} lines)\n")
+    if a.steps:
+        d = run_file(path, ["--format", "steps"], suffix=".ffsteps")
+        print("| output | print time | wall time | print/wall | peak RSS | steps | queue lines | max error |")
+        print("|---|---|---|---|---|---|---|---|")
+        print(f"| .ffsteps | {d['print_time_s'] / 3600:.2f} h | {d['wall_time_s']:.1f} s | "
+              f"{d['print_time_s'] / d['wall_time_s']:.0f}x | {d['maxrss_mb']:.0f} MB | {d['steps']:,} | "
+              f"{d['queue_lines']:,} | {d['max_step_error_steps']:.2f} steps |")
+        return
     print("| run | print time | wall time | print/wall | peak RSS | predicted RMS before -> after | self-check max |")
     print("|---|---|---|---|---|---|---|")
     for label, args in (("full (predict + self-check)", []),
