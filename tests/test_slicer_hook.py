@@ -41,3 +41,45 @@ def test_prusaslicer_post_process_runs_ffcomp(tmp_path):
     r2 = subprocess.run([sys.executable, "-m", "ffcomp", "hook", str(out)], capture_output=True, text=True)
     assert r2.returncode != 0 and "already compensated" in r2.stderr
     assert out.read_text() == text
+
+
+def test_cura_script_compensates_the_layers(tmp_path, monkeypatch):
+    """The shipped Cura script, run against a stand-in for Cura's ``Script`` base class (Cura itself
+    is not installable here): it hands the joined layers to ``ffcomp hook`` and returns the result."""
+    import json
+
+    pkg = tmp_path / "fakecura"
+    (pkg / "scripts").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "Script.py").write_text(
+        "import json\n"
+        "class Script:\n"
+        "    def __init__(self):\n"
+        "        s = json.loads(self.getSettingDataString())['settings']\n"
+        "        self.values = {k: v['default_value'] for k, v in s.items()}\n"
+        "    def getSettingValueByKey(self, key):\n"
+        "        return self.values[key]\n")
+    (pkg / "scripts" / "__init__.py").write_text("")
+    shutil.copy(ROOT / "ffcomp" / "data" / "FfcompPostProcessing.py", pkg / "scripts")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    mod = importlib.import_module("fakecura.scripts.FfcompPostProcessing")
+    script = mod.FfcompPostProcessing()
+    assert json.loads(script.getSettingDataString())["key"] == "FfcompPostProcessing"
+    exe = Path(sys.executable).with_name("ffcomp")
+    script.values["ffcomp"] = str(exe) if exe.exists() else shutil.which("ffcomp")
+    made = []
+    real_mkstemp = mod.tempfile.mkstemp
+
+    def mkstemp(*a, **k):
+        fd, path = real_mkstemp(*a, **k)
+        made.append(path)
+        return fd, path
+
+    monkeypatch.setattr(mod.tempfile, "mkstemp", mkstemp)
+    src = (ROOT / "samples" / "gcode" / "cube_cura.gcode").read_text()
+    parts = src.split(";LAYER:")
+    layers = [parts[0]] + [";LAYER:" + p for p in parts[1:]]  # Cura hands over one string per layer
+    text = "".join(script.execute(layers))
+    assert text.startswith("; ffcomp ") and "SET_VELOCITY_LIMIT ACCEL=" in text
+    assert text.count(";LAYER:") == src.count(";LAYER:")  # Cura's annotations survive in place
+    assert made and not any(os.path.exists(p) for p in made)  # the script cleans up after itself
