@@ -266,8 +266,7 @@ def carriage_rates(geom: DeltaGeometry, xyz, xyz_dot, xyz_ddot) -> tuple[np.ndar
     S = _s_matrix(geom, X, q)
     sz = S[:, :, 2]
     qd = matvec3(S, v) / sz
-    sd2 = np.sum(v * v, axis=1)[:, None] - 2.0 * v[:, 2:3] * qd + qd * qd  # |X_dot - e_z q_dot_i|^2
-    qdd = (matvec3(S, a) + sd2) / sz
+    qdd = (matvec3(S, a) + _arm_rate_sq(v, qd)) / sz
     return qd, qdd
 
 
@@ -286,8 +285,12 @@ def velocity_product(geom: DeltaGeometry, xyz, qd, *, q=None, J=None) -> np.ndar
     # J = -S^-1 diag(h)  =>  S^-1 = -J diag(1/h)
     Sinv = inv3(S) if J is None else -J / h[:, None, :]
     Xd = -matvec3(Sinv, h * qd)
-    w = np.sum(Xd * Xd, axis=1)[:, None] - 2.0 * Xd[:, 2:3] * qd + qd * qd
-    return -matvec3(Sinv, w)
+    return -matvec3(Sinv, _arm_rate_sq(Xd, qd))
+
+
+def _arm_rate_sq(xyz_dot: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """``|s_i_dot|^2 = |X_dot - e_z q_dot_i|^2`` of each arm, shape (N, 3)."""
+    return np.sum(xyz_dot * xyz_dot, axis=1)[:, None] - 2.0 * xyz_dot[:, 2:3] * qd + qd * qd
 
 
 def reachable(geom: DeltaGeometry, xyz, *, tol_m: float = 1e-9) -> np.ndarray:

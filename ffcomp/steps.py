@@ -37,8 +37,8 @@ import numpy as np
 from .errors import MeasurementError
 
 __all__ = ["step_events", "compress_steps", "expand_queue", "StepStream", "write_ffsteps", "FfstepsWriter",
-           "read_ffsteps", "ffsteps_max_error", "SampleFile", "positions_from_steps", "write_plain", "write_plain_header",
-           "write_plain_rows", "read_plain"]
+           "read_ffsteps", "ffsteps_max_error", "SampleFile", "positions_from_steps", "write_plain",
+           "write_plain_header", "write_plain_rows", "read_plain"]
 
 STEPPERS = ("A", "B", "C")
 
@@ -100,7 +100,7 @@ def _fit_np(prev: int, seg: np.ndarray, max_error: int):
 
 
 def _fit_py(prev: int, seg: list, max_error: int):
-    """:func:`_fit` for short runs, in Python integers (numpy's per-call cost dominates there)."""
+    """:func:`_fit_np` for short runs, in Python integers."""
     c = len(seg)
     if c == 1:
         return seg[0] - prev, 0
@@ -157,16 +157,20 @@ def compress_steps(ticks: np.ndarray, max_error: int, first_prev: int) -> list[t
     prev = int(first_prev)
     guess = 8
 
-    def _fit(prev, seg, max_error):  # short probes in Python integers, long ones with numpy
-        return _fit_py(prev, tl[i:i + len(seg)], max_error) if len(seg) <= 96 else _fit_np(prev, seg, max_error)
+    def fit(c):
+        """(interval, add) for the next ``c`` steps, or None: short probes in Python integers (numpy's
+        per-call cost dominates there), long ones with numpy."""
+        if c <= 96:
+            return _fit_py(prev, tl[i:i + c], max_error)
+        return _fit_np(prev, ticks[i:i + c], max_error)
 
     while i < n:
-        best = _fit(prev, ticks[i:i + 1], max_error) or (int(ticks[i] - prev), 0)
+        best = (tl[i] - prev, 0)  # one step always fits exactly
         best_c, lo, hi = 1, 1, None
         # start from the previous entry's length: neighbouring entries are alike
         c = min(n - i, max(2, guess))
         while True:
-            f = _fit(prev, ticks[i:i + c], max_error)
+            f = fit(c)
             if f is None:
                 hi = c
                 break
@@ -178,7 +182,7 @@ def compress_steps(ticks: np.ndarray, max_error: int, first_prev: int) -> list[t
         # binary search between the last fitting and the first failing count
         while hi - lo > 1:
             mid = (lo + hi) // 2
-            f = _fit(prev, ticks[i:i + mid], max_error)
+            f = fit(mid)
             if f is None:
                 hi = mid
             else:
@@ -310,6 +314,11 @@ class FfstepsWriter:
 
     def push(self, name: str, t_s: np.ndarray, d: np.ndarray) -> None:
         self._rc[name].push(t_s, d)
+
+    def push_chunk(self, ev: dict) -> None:
+        """``ev``: stepper name -> (step times s, directions) of one chunk."""
+        for name, (t_s, d) in ev.items():
+            self._rc[name].push(t_s, d)
 
     def finish(self) -> int:
         """Write ``path`` (header, then the steppers' lines); returns the number of queue lines."""

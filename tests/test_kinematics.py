@@ -7,9 +7,8 @@ from hypothesis import strategies as st
 
 from ffcomp.errors import KinematicsError
 from ffcomp.kinematics import (
-    carriage_rates,
-    velocity_product,
     DeltaGeometry,
+    carriage_rates,
     check_reachable,
     condition_number,
     forward,
@@ -17,6 +16,7 @@ from ffcomp.kinematics import (
     jacobian,
     jacobian_dot,
     reachable,
+    velocity_product,
 )
 from ffcomp.profile import default_profile
 

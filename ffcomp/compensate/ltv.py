@@ -47,13 +47,11 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     n = A.shape[1]
     foh = modal_foh(A, B, dt_s)
     Vinv = np.linalg.inv(foh.V)
-    # real system, real inputs: a complex-conjugate pair of modes carries the same information
-    # twice.  When every mode is oscillatory, keep one of each pair and double the real part.
+    # one mode of each complex-conjugate pair, doubled (see _upper_modes)
     lam, Vfull, g1, g2 = foh.lam, foh.V, foh.g1, foh.g2
     scale = 1.0
-    up = lam.imag > 0
-    if n % 2 == 0 and np.all(up.sum(axis=1) == n // 2):
-        sel = np.argsort(~up, axis=1, kind="stable")[:, : n // 2]  # the modes with Im > 0
+    sel = _upper_modes(lam)
+    if sel is not None:
         take = lambda a: np.take_along_axis(a, sel[:, :, None], axis=1)  # noqa: E731
         lam = np.take_along_axis(lam, sel, axis=1)
         Vfull = np.take_along_axis(Vfull, sel[:, None, :], axis=2)
@@ -101,6 +99,20 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     return X[:N], x_end
 
 
+def _upper_modes(lam: np.ndarray) -> np.ndarray | None:
+    """Indices (P, n/2) of the modes with ``Im > 0`` when every mode of every system (rows of
+    ``lam``, (P, n)) is one of a complex-conjugate pair; None otherwise.
+
+    A real system driven by real inputs has conjugate states in conjugate modes, so one mode of
+    each pair, doubled in the real part of the output, carries the whole response at half the work.
+    """
+    n = lam.shape[1]
+    up = lam.imag > 0
+    if n % 2 or not np.all(up.sum(axis=1) == n // 2) or np.any(lam.imag == 0):
+        return None
+    return np.argsort(~up, axis=1, kind="stable")[:, : n // 2]
+
+
 def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
                  z0: np.ndarray | None = None, foh=None) -> tuple[np.ndarray, np.ndarray]:
     """LTI ``x' = A x + B w`` with first-order-hold inputs, by per-mode recursive filters.
@@ -124,12 +136,13 @@ def simulate_lti(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     g1, g2 = foh.g1[0], foh.g2[0]
     n_all = len(lam)
     z_init = np.zeros(n_all, complex) if z0 is None else np.asarray(z0, complex)
-    # real system, real inputs: of a complex-conjugate pair of modes, run one and double its part
-    # (eig returns conjugate eigenvectors for conjugate eigenvalues, so the states are conjugate)
-    up = np.nonzero(lam.imag > 0)[0]
-    lo = np.nonzero(lam.imag < 0)[0]
-    paired = 2 * len(up) == n_all
+    # one mode of each complex-conjugate pair, doubled (see _upper_modes); the state handed back
+    # holds every mode, the conjugates' rebuilt from their partners
+    sel = _upper_modes(lam[None])
+    paired = sel is not None
     if paired:
+        up = sel[0]
+        lo = np.nonzero(lam.imag < 0)[0]
         partner = up[np.argmin(np.abs(lam[lo][:, None] - np.conj(lam[up])[None, :]), axis=1)]
         lam, V, g1, g2, z_init = lam[up], V[:, up], g1[up], g2[up], z_init[up]
     e = np.exp(lam * dt_s)

@@ -17,7 +17,6 @@ from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverError
-from ..kinematics import carriage_rates
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
 from .fbs import _dense_basis
@@ -33,7 +32,7 @@ from .kernels import (
 )
 from .ltv import simulate_lti
 
-__all__ = ["FbsStream", "StreamingInverse", "carriage_derivatives"]
+__all__ = ["FbsStream", "StreamingInverse"]
 
 
 class FbsStream:
@@ -374,12 +373,6 @@ def _chol_to_inv(factor) -> np.ndarray:
     return cho_solve(factor, np.eye(n), check_finite=False)
 
 
-def carriage_derivatives(geom, xyz_m, v_m_s, a_m_s2):
-    """Carriage velocities and accelerations from nozzle kinematics: ``q' = J^-1 v``,
-    ``q'' = J^-1 (a - J_dot q')`` (in closed form, :func:`ffcomp.kinematics.carriage_rates`)."""
-    return carriage_rates(geom, xyz_m, v_m_s, a_m_s2)
-
-
 class StreamingInverse:
     """Reference samples in, compensated carriage commands out, in bounded memory.
 
@@ -522,7 +515,8 @@ class StreamingInverse:
         if not self.started:
             self._start(q_m[0], xyz_m[0])
         if qd is None or qdd is None:
-            raise ValueError("push needs the carriage velocities and accelerations (see carriage_derivatives)")
+            raise ValueError("push needs the carriage velocities and accelerations "
+                             "(see ffcomp.kinematics.carriage_rates)")
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())
         out = self._push(q_m, qd, qdd, xyz_m, None if hold is None else np.asarray(hold, bool))

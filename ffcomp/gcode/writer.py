@@ -20,13 +20,12 @@ the compensated nozzle positions, and every other line kept in place.
 
 from __future__ import annotations
 
-from array import array
 from dataclasses import dataclass, field
-from typing import IO, Iterator
+from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
-from .moves import DWELL, EXTRUDE, MOVE, PlannedMove
+from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES"]
@@ -118,9 +117,8 @@ class GcodeWriter:
         self.nlines = 0  # body lines written
         #: (body line number, first sample, last sample, catch-up flag) of every XYZ segment, for the
         #: self-check: int64 rows written to ``segment_table`` (a binary file, so memory stays
-        #: bounded) or, without one, kept in :attr:`segments`
+        #: bounded); not recorded without one
         self.segment_table = segment_table
-        self.segments = array("q")
         self._write = out.write
 
     def _w(self, text: str) -> None:
@@ -179,10 +177,11 @@ class GcodeWriter:
         runs = []
         for a, b, mi, ln in zip(starts, ends, mis, lns):
             mv = self.moves.get(mi)
-            runs.append((a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
+            runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
         chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs)
         seg_base = []
-        for r, (a, b, mi, mv, kind, ln) in enumerate(runs):
+        for r, run in enumerate(runs):
+            mv, kind, ln = run.move, run.kind, run.lineno
             self.flush_lines(ln)
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
@@ -203,26 +202,23 @@ class GcodeWriter:
         self.n_replaced += len(self.replaced)
         self.stats.motion_lines_replaced = self.n_replaced
         # lines before the next source line to write are settled: forget them (bounded memory)
-        nxt = self.next_line.lineno if self.next_line is not None else runs[-1][5]
+        nxt = self.next_line.lineno if self.next_line is not None else runs[-1].lineno
         keep = {k for k in self.replaced if k >= nxt}
         self.n_replaced -= len(keep)
         self.replaced = keep
-        last_mi = runs[-1][2]
+        last_mi = runs[-1].move_index
         for old in [k for k in self.moves if k < last_mi - 2]:
             del self.moves[old]
         if len(self.done_moves) > 64:
             self.done_moves = {k for k in self.done_moves if k >= last_mi - 2}
         # the self-check's table: body line, first and last sample, catch-up flag of every segment
-        if seg_base and len(chunk.seg_rows):
+        if self.segment_table is not None and seg_base and len(chunk.seg_rows):
             base = np.zeros(len(runs), np.int64)
             for r, n0 in seg_base:
                 base[r] = n0
             rows = chunk.seg_rows.copy()
             rows[:, 0] += base[chunk.seg_run]
-            if self.segment_table is not None:
-                self.segment_table.write(rows.astype(np.int64).tobytes())
-            else:
-                self.segments.extend(rows.reshape(-1).tolist())
+            self.segment_table.write(rows.tobytes())
 
     def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list) -> "_Chunk":
         """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.
@@ -240,7 +236,7 @@ class GcodeWriter:
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
         follows_hold = np.zeros(R, bool)
-        for r, (a, b, mi, mv, kind, ln) in enumerate(runs):
+        for r, (a, b, _, mv, kind, _) in enumerate(runs):
             if kind == MOVE:
                 run_ids.append(r)
                 a_s.append(a)
@@ -295,7 +291,7 @@ class GcodeWriter:
         de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         first_seg = np.r_[True, srun[1:] != srun[:-1]]
         v = self._firmware_feeds(d, dist, dt, hold, first_seg & follows_hold[run_ids[srun]])
-        if runs[-1][4] != MOVE:
+        if runs[-1].kind != MOVE:
             self.f_last = 0.0
         # ---- statistics
         moving = ~hold
@@ -400,6 +396,17 @@ class GcodeWriter:
 
     def finish(self) -> None:
         self.flush_lines(1 << 62)
+
+
+class _Run(NamedTuple):
+    """Samples ``[start, end)`` of a chunk that belong to one planned move."""
+
+    start: int
+    end: int
+    move_index: int
+    move: PlannedMove | None
+    kind: str
+    lineno: int
 
 
 class _Chunk:

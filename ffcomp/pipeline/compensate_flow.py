@@ -24,14 +24,14 @@ from .. import __version__
 from ..compensate.inverse import InverseConfig
 from ..compensate.kernels import DriveFilter
 from ..compensate.ltv import simulate_piecewise
-from ..compensate.stream import StreamingInverse, carriage_derivatives
+from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
-from ..gcode.parser import parse_gcode
 from ..gcode.moves import MOVE
+from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
-from ..kinematics import forward, inverse, jacobian
+from ..kinematics import carriage_rates, forward, inverse, jacobian
 from ..linalg3 import matvec3
 from ..model.lpv import LpvModel, mech_arrays
 
@@ -417,7 +417,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
                       lineno=blk.lineno[sl])
-            qd, qdd = carriage_derivatives(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
+            qd, qdd = carriage_rates(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
             hold = _holds(blk.move_index[sl], moves) if opts.pin_holds else None
             yield from out(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
         last_q = q[-1].copy()
@@ -614,13 +614,10 @@ def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary,
         flush()
 
     last = None
-    for mv in GcodePlan(path, profile, lenient=True):
-        buf.append(mv)
+    for last in GcodePlan(path, profile, lenient=True):
+        buf.append(last)
         if len(buf) >= 5000:
-            last = buf[-1]
             flush_moves()
-    if buf:
-        last = buf[-1]
     flush_moves()
     table.close()
     t_end = last.t_end_s if last is not None else 0.0

@@ -70,15 +70,10 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     out_dir = os.path.dirname(os.path.abspath(out_path))
     fd, tmp = tempfile.mkstemp(prefix=".ffcomp-steps-", suffix=os.path.splitext(out_path)[1], dir=out_dir)
     os.close(fd)
-    summ = StepsSummary(src, out_path, method, restarts=0)
+    summ = StepsSummary(src, out_path, method)
     sink = qs = None
     try:
-        if npz:
-            sink = _NpzSink(spm)
-        elif csv:
-            sink = _CsvSink(tmp, spm)
-        else:
-            sink = FfstepsWriter(tmp, spm)
+        sink = (_NpzSink if npz else _CsvSink if csv else FfstepsWriter)(tmp, spm)
         n0 = None
         k = 0
         qs = SampleFile(tmp + ".q")  # every 10th command, for the read-back check (on disk)
@@ -103,20 +98,13 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
             if n0 is None:
                 n0 = tuple(starts)
                 sink.start_steps = n0
-            if plain:
-                sink.push_chunk(ev)
-            else:
-                for name, (t, d) in ev.items():
-                    sink.push(name, t, d)
+            sink.push_chunk(ev)
             last = qc[-1:]
             qs.append(qc[(-k) % 10::10])
             k += len(qc)
         summ.print_time_s = k * dt
         summ.restarts = summ_c.restarts
-        if plain:
-            sink.finish(tmp)
-        else:
-            summ.queue_lines = sink.finish()
+        summ.queue_lines = sink.finish()
         # reconstruction check on every 10th sample, read back from the written file
         if len(qs):
             if plain:
@@ -132,7 +120,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     finally:
         if qs is not None:
             qs.close()
-        if isinstance(sink, FfstepsWriter):
+        if sink is not None:
             sink.close()
         if tmp and os.path.exists(tmp):
             os.unlink(tmp)
@@ -156,26 +144,34 @@ class _CsvSink:
             self._head = True
         write_plain_rows(self.f, ev)
 
-    def finish(self, path: str) -> None:
+    def finish(self) -> int:
         if not self._head:
             write_plain_header(self.f, self.spm, self.start_steps)
+        self.f.close()
+        return 0
+
+    def close(self) -> None:
         self.f.close()
 
 
 class _NpzSink:
     """NPZ needs whole arrays: the step times are gathered in memory and written at the end."""
 
-    def __init__(self, spm: float):
+    def __init__(self, path: str, spm: float):
+        self.path, self.spm = path, spm
         self.per = {n: ([], []) for n in STEPPERS}
         self.start_steps = (0, 0, 0)
-        self.spm = spm
 
     def push_chunk(self, ev: dict) -> None:
         for n, (t, d) in ev.items():
             self.per[n][0].append(t)
             self.per[n][1].append(d)
 
-    def finish(self, path: str) -> None:
+    def finish(self) -> int:
         tt = {n: (np.concatenate(self.per[n][0]) if self.per[n][0] else np.zeros(0),
                   np.concatenate(self.per[n][1]) if self.per[n][1] else np.zeros(0, np.int8)) for n in STEPPERS}
-        write_plain(path, tt, self.spm, self.start_steps)
+        write_plain(self.path, tt, self.spm, self.start_steps)
+        return 0
+
+    def close(self) -> None:
+        self.per = {n: ([], []) for n in STEPPERS}

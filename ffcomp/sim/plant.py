@@ -11,7 +11,7 @@ where ``M = diag(m) + m_nt J^T J``, ``C = diag(c + b) + b_nt J^T J``, ``K``, ``B
 from :meth:`LpvModel.matrices` at the actual pose, so every effect that edits the pose matrices
 (mass, damping, stiffness, input coupling, drive filter) is honoured; ``J' q' = -S^-1 w`` with
 ``w_i = |X' - e_z q_i'|^2`` is the exact velocity term of the constraint ``|s_i|^2 = L_i^2`` (twice
-differentiated), i.e. ``J_dot q_dot`` of :func:`~ffcomp.kinematics.jacobian_dot` in closed form;
+differentiated), i.e. ``J_dot q_dot`` in closed form (:func:`~ffcomp.kinematics.velocity_product`);
 ``m_nt`` and the geometry are the model's (an effect that adds task-space mass is honoured in ``M``
 but not in this small velocity term).  ``f_g`` is gravity, off by default: homing and bed probing
 are done under gravity, so the static sag (``(m + m_nt/3) g / k`` ~ 26 um at the centre for the
@@ -54,8 +54,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ..errors import KinematicsError
-from ..kinematics import forward, jacobian_dot, reachable
-from ..linalg3 import inv3
+from ..kinematics import forward, reachable, velocity_product
+from ..linalg3 import inv3, rmatvec3
 from ..model.lpv import LpvModel, drive_filter_ss
 from .drive import DriveGrid, upsample
 
@@ -227,11 +227,10 @@ class DeltaPlant:
         q, v = x[:, nfs:nfs + 3], x[:, nfs + 3:nfs + 6]
         X = forward(self.geometry, q)
         mats = self.model.matrices(X, check=False)
-        Xd = np.einsum("rij,rj->ri", mats.J, v)
-        Jd = jacobian_dot(self.geometry, X, Xd)
+        Jdv = velocity_product(self.geometry, X, v, q=mats.q_m, J=mats.J)
         f = (mats.B_c * ud + mats.B_k * u - np.einsum("rij,rj->ri", mats.K, q)
              - np.einsum("rij,rj->ri", mats.C, v)
-             - self.model.m_nt * np.einsum("rki,rkj,rj->ri", mats.J, Jd, v)
+             - self.model.m_nt * rmatvec3(mats.J, Jdv)
              + self._static_force(mats, None if q_ref_m is None else np.atleast_2d(q_ref_m)))
         dx[:, nfs:nfs + 3] = v
         dx[:, nfs + 3:] = np.linalg.solve(mats.M, f[:, :, None])[:, :, 0]
