@@ -105,6 +105,8 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     from ffcomp.compensate.stream import StreamingInverse
     from ffcomp.gcode.writer import GcodeWriter
     from ffcomp.pipeline import compensate_flow as cf
+    from ffcomp.pipeline import predictor as pr
+    from ffcomp.pipeline import self_check as sc
 
     def key(fn):
         return (inspect.getsourcefile(fn), inspect.getsourcelines(fn)[1], fn.__name__)
@@ -112,7 +114,7 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     cum = {k: v[3] for k, v in st.stats.items()}
     total = cum[key(cf._compensate_file)]
     stages = {"G-code writer": key(GcodeWriter.feed), "streaming inverse": key(StreamingInverse.push),
-              "self-check re-plan": key(cf._self_check), "LPV prediction for the summary": key(cf._Predictor.flush)}
+              "self-check re-plan": key(sc.self_check), "LPV prediction for the summary": key(pr.Predictor.flush)}
     print(f"\nTime profile of the first {n_lines:,} lines ({total:.1f} s under cProfile):\n")
     print("| part | share |\n|---|---|")
     for name, key in stages.items():

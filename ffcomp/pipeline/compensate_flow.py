@@ -10,32 +10,28 @@ planner as a self-check, and only then does it replace the output atomically.
 
 from __future__ import annotations
 
-import math
 import os
 import tempfile
 import time
 from dataclasses import asdict, dataclass, field
-from operator import attrgetter
 from typing import Callable
 
 import numpy as np
 
-from .. import __version__
 from ..compensate.inverse import InverseConfig
-from ..compensate.kernels import DriveFilter
-from ..compensate.ltv import simulate_piecewise
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
-from ..gcode.moves import MOVE
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
-from ..kinematics import carriage_rates, forward, inverse, jacobian
-from ..linalg3 import matvec3
-from ..model.lpv import LpvModel, mech_arrays
+from ..kinematics import carriage_rates, forward, inverse
+from ..model.lpv import LpvModel
+from .header import header_accel, header_lines
+from .predictor import Predictor
+from .self_check import self_check
 
-__all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M"]
+__all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel"]
 
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3
@@ -106,86 +102,6 @@ class CompensationSummary:
 
     def to_dict(self) -> dict:
         return asdict(self)
-
-
-class _Predictor:
-    """Running LPV prediction of the nozzle error of the reference and of the command, together.
-
-    The drive filters (LTI, per tower) run as recursive filters; the coupled mechanics run
-    piecewise frozen (pose updated every ``seg`` samples) with the drive position and velocity as
-    inputs, both streams through the same diagonalised matrices.  Same model as
-    :func:`ffcomp.compensate.predict.predict_lpv`, split where it is exact.
-    """
-
-    def __init__(self, model: LpvModel, dt_s: float, seg: int = 100, batch: int = 16000):
-        self.model, self.dt, self.seg, self.batch = model, dt_s, seg, batch
-        self._buf: list = []
-        self._nbuf = 0
-        mats = model.matrices(np.zeros((1, 3)) + [0, 0, model.geometry.z_min_m], check=False)
-        d = [(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i]) for i in range(3)]
-        self._mk = lambda: [[(DriveFilter(*d[i], dt_s), DriveFilter(*d[i], dt_s, derivative=True))
-                             for i in range(3)] for _ in range(2)]
-        self.sq = np.zeros(2)
-        self.n = 0
-        self.mx = np.zeros(2)
-        self.reset()
-
-    def reset(self):
-        self.flush()
-        self.x = None
-        self.w_last = None
-        self.filters = self._mk()
-
-    def push(self, q_cmd, q_ref, xyz_ref):
-        """Predict both the command (run 0) and the uncompensated reference (run 1); samples are
-        gathered into batches of ``batch`` (fewer, larger array operations)."""
-        if len(q_cmd) == 0:
-            return
-        self._buf.append((q_cmd, q_ref, xyz_ref))
-        self._nbuf += len(q_cmd)
-        if self._nbuf >= self.batch:
-            self.flush()
-
-    def flush(self):
-        """Predict the gathered samples."""
-        if not self._buf:
-            return
-        q_cmd, q_ref, xyz_ref = (np.concatenate(a) for a in zip(*self._buf))
-        self._buf.clear()
-        self._nbuf = 0
-        self._predict(q_cmd, q_ref, xyz_ref)
-
-    def _predict(self, q_cmd, q_ref, xyz_ref):
-        if self.x is None:
-            self.q0 = q_ref[0].copy()
-        ws = []
-        for r, q in enumerate((q_cmd, q_ref)):
-            rel = q - self.q0
-            f = self.filters[r]
-            ws.append(np.hstack([np.stack([f[i][0](rel[:, i]) for i in range(3)], 1),
-                                 np.stack([f[i][1](rel[:, i]) for i in range(3)], 1)]))
-        w = np.stack(ws, axis=2)  # (N, 6, 2)
-        prefix = 0
-        if self.x is not None:
-            w = np.concatenate([self.w_last, w])
-            prefix = 1
-        X = np.concatenate([xyz_ref[:1], xyz_ref]) if prefix else xyz_ref
-        S = -(-len(w) // self.seg)
-        idx = np.minimum(np.arange(S) * self.seg + self.seg // 2, len(X) - 1)
-        A, B = mech_arrays(self.model.matrices(X[idx], check=False))
-        xs, _ = simulate_piecewise(A, B, w, self.dt, self.seg, x0=self.x)
-        self.x = xs[-1]
-        self.w_last = w[-1:]
-        J = jacobian(self.model.geometry, xyz_ref, q=q_ref)
-        for r in range(2):
-            e = matvec3(J, xs[prefix:, :3, r] + self.q0 - q_ref)
-            en = np.sqrt(np.sum(e * e, 1))
-            self.sq[r] += float(np.sum(en * en))
-            self.mx[r] = max(self.mx[r], float(en.max()))
-        self.n += len(q_cmd)
-
-    def rms_um(self, r: int) -> float:
-        return math.sqrt(self.sq[r] / max(self.n, 1)) * 1e6
 
 
 def _refuse_compensated(path: str) -> None:
@@ -267,7 +183,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
                                  max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf)
-            pred = _Predictor(model, dt) if opts.predict else None
+            pred = Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
 
@@ -321,7 +237,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
-        head, foot = _header(profile, opts, src, accel)
+        head, foot = header_lines(profile, opts, src, accel)
         final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:
@@ -336,7 +252,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             os.fsync(fo.fileno())
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
-            _self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
+            self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
         # success: move into place
         if out_path is None:
             import shutil
@@ -504,168 +420,3 @@ class _Fifo:
             out[k], rest = arr[:n], arr[n:]
             self.parts[k] = [rest]
         return out
-
-
-def header_accel(profile, opts: CompensateOptions) -> float:
-    """The ACCEL the output sets (and the writer's timing assumes), mm/s^2."""
-    return float(max(1e5, opts.accel_factor * profile.limits.max_accel_mm_s2))
-
-
-def _header(profile, opts: CompensateOptions, src: str, accel: float) -> tuple[list[str], list[str]]:
-    lim = profile.limits
-    settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
-                f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
-                f"degree={opts.inverse.degree} sample_rate={lim.sample_rate_hz:g}Hz")
-    head = [
-        f"; ffcomp {__version__}: model-based feedforward vibration compensation (delta)",
-        f"; source: {os.path.basename(src)}",
-        f"; profile: {profile.name}",
-        f"; settings: {settings}",
-        "; The timing of every move below is baked in: run it with the firmware settings that follow",
-        "; (limit and mode commands of the source are kept as '; ffcomp (baked in):' comments).",
-    ]
-    if lim.planner == "klipper":
-        head += [
-            f"; requires [printer] max_z_accel >= {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
-            f"max_z_velocity >= {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
-            f"SET_VELOCITY_LIMIT ACCEL={accel:.0f} MINIMUM_CRUISE_RATIO=0 "
-            f"SQUARE_CORNER_VELOCITY={opts.corner_velocity_mm_s:g}",
-        ]
-        foot = [f"SET_VELOCITY_LIMIT ACCEL={lim.max_accel_mm_s2:g} MINIMUM_CRUISE_RATIO={lim.minimum_cruise_ratio:g} "
-                f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g} ; ffcomp: restore the profile's limits"]
-    else:
-        head += [f"M204 P{accel:.0f} T{accel:.0f}", f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f}"]
-        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} ; ffcomp: restore the profile's limits"]
-    head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
-    return head, foot
-
-
-def _self_check(path: str, qfile: str, profile, geom, summ: CompensationSummary, opts: CompensateOptions,
-                segfile: str | None = None, head_len: int = 0) -> None:
-    """Re-plan the output with the firmware-faithful planner and compare carriages with the intent.
-
-    Every re-planned XYZ segment is sampled from its own start at the intended sample spacing and
-    compared with the intended commands of the samples it stands for, so the check sees both the
-    shape (tolerance, firmware acceleration ramps) and the timing inside each segment; the drift of
-    the whole file's duration is reported separately (``output_print_time_s``).
-    """
-    qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
-    table = _SegmentTable(segfile, head_len)
-    dt = 1.0 / profile.limits.sample_rate_hz
-    worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
-    worst_cu = 0.0
-    batch_pos, batch_k, batch_cu = [], [], []
-
-    def flush():
-        nonlocal worst, worst_k, sq, cnt, worst_cu
-        if not batch_pos:
-            return
-        P = np.concatenate(batch_pos) * 1e-3
-        K = np.concatenate(batch_k)
-        CU = np.concatenate(batch_cu)
-        q = inverse(geom, P)
-        k0, k1 = int(K.min()), int(K.max()) + 1
-        qf.seek(k0 * 12)
-        win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
-        d = np.max(np.abs(q - win[K - k0].astype(float)), axis=1)
-        if CU.any():
-            worst_cu = max(worst_cu, float(np.max(d[CU])))
-            d = np.where(CU, 0.0, d)
-        i = int(np.nanargmax(d))
-        if d[i] > worst:
-            worst, worst_k = float(d[i]), int(K[i])
-        sq += float(np.nansum(d * d))
-        cnt += len(d)
-        batch_pos.clear()
-        batch_k.clear()
-        batch_cu.clear()
-
-    scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
-                         "decel_t_s")
-    buf: list = []
-
-    def flush_moves():
-        if not buf:
-            return
-        mvs = [m for m in buf if m.kind == MOVE]
-        buf.clear()
-        if not mvs:
-            return
-        R = np.array([scalars(m) for m in mvs], dtype=float)
-        geo = np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)
-        # the segments the writer wrote, by their line in the output
-        ln = R[:, 0].astype(np.int64)
-        tab = table.upto(int(ln[-1]))
-        seg_lines = tab[:, 0]
-        j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
-        ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
-        R, geo, j = R[ok], geo[ok], j[ok]
-        ka, kb, cu = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool)
-        cnt = kb - ka
-        idx = np.repeat(np.arange(len(R)), cnt)
-        k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
-        dur = R[:, 4] + R[:, 5] + R[:, 6]
-        tau = np.minimum(k * dt, dur[idx])
-        s_ = _distance_v(R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5], tau)
-        P = geo[idx, :3] + s_[:, None] * geo[idx, 3:]
-        batch_pos.append(P)
-        batch_k.append(ka[idx] + k)
-        batch_cu.append(cu[idx])
-        flush()
-
-    last = None
-    for last in GcodePlan(path, profile, lenient=True):
-        buf.append(last)
-        if len(buf) >= 5000:
-            flush_moves()
-    flush_moves()
-    table.close()
-    t_end = last.t_end_s if last is not None else 0.0
-    qf.close()
-    summ.output_print_time_s = t_end
-    summ.self_check_max_um = worst * 1e6
-    summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
-    summ.self_check_catch_up_max_um = worst_cu * 1e6
-    if worst_cu * 1e6 > 4 * opts.self_check_tol_um:
-        raise SelfCheckError(
-            f"self-check failed: a catch-up after an extruder-only move or dwell strays {worst_cu * 1e6:.1f} um "
-            f"from the intended carriage commands (limit {4 * opts.self_check_tol_um:g} um). Nothing was written.")
-    if worst * 1e6 > opts.self_check_tol_um:
-        raise SelfCheckError(
-            f"self-check failed: the re-planned output strays {worst * 1e6:.1f} um from the intended carriage "
-            f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
-
-
-class _SegmentTable:
-    """The writer's segment table (int64 rows: output line, first and last sample, catch-up flag),
-    read forward in step with the re-planned moves, which come in line order."""
-
-    def __init__(self, path: str | None, head_len: int):
-        self.f = open(path, "rb") if path else None
-        self.head_len = head_len
-        self.buf = np.zeros((0, 4), np.int64)
-
-    def upto(self, line: int) -> np.ndarray:
-        """Rows of output lines ``<= line`` not returned before (lines shifted by the header)."""
-        while self.f is not None and (not len(self.buf) or self.buf[-1, 0] <= line):
-            raw = self.f.read(32 * 65536)
-            if not raw:
-                break
-            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, 4).copy()
-            rows[:, 0] += self.head_len
-            self.buf = np.concatenate([self.buf, rows])
-        n = int(np.searchsorted(self.buf[:, 0], line, side="right"))
-        out, self.buf = self.buf[:n], self.buf[n:]
-        return out
-
-    def close(self) -> None:
-        if self.f is not None:
-            self.f.close()
-
-
-def _distance_v(a, v0, vc, ta, tc, tau):
-    """Distance along planned trapezoids at times ``tau`` after their starts (all arrays), mm."""
-    d_a = (v0 + vc) * 0.5 * ta
-    t3 = tau - ta - tc
-    return np.where(tau < ta, v0 * tau + 0.5 * a * tau * tau,
-                    np.where(tau < ta + tc, d_a + vc * (tau - ta), d_a + vc * tc + vc * t3 - 0.5 * a * t3 * t3))

@@ -1,0 +1,146 @@
+"""Self-check of a compensated G-code file: re-plan it and compare with the intended commands."""
+
+from __future__ import annotations
+
+import math
+from operator import attrgetter
+
+import numpy as np
+
+from ..errors import SelfCheckError
+from ..gcode.moves import MOVE
+from ..gcode.planner import GcodePlan
+from ..kinematics import inverse
+
+__all__ = ["self_check"]
+
+
+def self_check(path: str, qfile: str, profile, geom, summ, opts,
+                segfile: str | None = None, head_len: int = 0) -> None:
+    """Re-plan the output with the firmware-faithful planner and compare carriages with the intent.
+
+    Every re-planned XYZ segment is sampled from its own start at the intended sample spacing and
+    compared with the intended commands of the samples it stands for, so the check sees both the
+    shape (tolerance, firmware acceleration ramps) and the timing inside each segment; the drift of
+    the whole file's duration is reported separately (``output_print_time_s``).
+    """
+    qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
+    table = _SegmentTable(segfile, head_len)
+    dt = 1.0 / profile.limits.sample_rate_hz
+    worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
+    worst_cu = 0.0
+    batch_pos, batch_k, batch_cu = [], [], []
+
+    def flush():
+        nonlocal worst, worst_k, sq, cnt, worst_cu
+        if not batch_pos:
+            return
+        P = np.concatenate(batch_pos) * 1e-3
+        K = np.concatenate(batch_k)
+        CU = np.concatenate(batch_cu)
+        q = inverse(geom, P)
+        k0, k1 = int(K.min()), int(K.max()) + 1
+        qf.seek(k0 * 12)
+        win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
+        d = np.max(np.abs(q - win[K - k0].astype(float)), axis=1)
+        if CU.any():
+            worst_cu = max(worst_cu, float(np.max(d[CU])))
+            d = np.where(CU, 0.0, d)
+        i = int(np.nanargmax(d))
+        if d[i] > worst:
+            worst, worst_k = float(d[i]), int(K[i])
+        sq += float(np.nansum(d * d))
+        cnt += len(d)
+        batch_pos.clear()
+        batch_k.clear()
+        batch_cu.clear()
+
+    scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
+                         "decel_t_s")
+    buf: list = []
+
+    def flush_moves():
+        if not buf:
+            return
+        mvs = [m for m in buf if m.kind == MOVE]
+        buf.clear()
+        if not mvs:
+            return
+        R = np.array([scalars(m) for m in mvs], dtype=float)
+        geo = np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)
+        # the segments the writer wrote, by their line in the output
+        ln = R[:, 0].astype(np.int64)
+        tab = table.upto(int(ln[-1]))
+        seg_lines = tab[:, 0]
+        j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
+        ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
+        R, geo, j = R[ok], geo[ok], j[ok]
+        ka, kb, cu = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool)
+        cnt = kb - ka
+        idx = np.repeat(np.arange(len(R)), cnt)
+        k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
+        dur = R[:, 4] + R[:, 5] + R[:, 6]
+        tau = np.minimum(k * dt, dur[idx])
+        s_ = _distance_v(R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5], tau)
+        P = geo[idx, :3] + s_[:, None] * geo[idx, 3:]
+        batch_pos.append(P)
+        batch_k.append(ka[idx] + k)
+        batch_cu.append(cu[idx])
+        flush()
+
+    last = None
+    for last in GcodePlan(path, profile, lenient=True):
+        buf.append(last)
+        if len(buf) >= 5000:
+            flush_moves()
+    flush_moves()
+    table.close()
+    t_end = last.t_end_s if last is not None else 0.0
+    qf.close()
+    summ.output_print_time_s = t_end
+    summ.self_check_max_um = worst * 1e6
+    summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
+    summ.self_check_catch_up_max_um = worst_cu * 1e6
+    if worst_cu * 1e6 > 4 * opts.self_check_tol_um:
+        raise SelfCheckError(
+            f"self-check failed: a catch-up after an extruder-only move or dwell strays {worst_cu * 1e6:.1f} um "
+            f"from the intended carriage commands (limit {4 * opts.self_check_tol_um:g} um). Nothing was written.")
+    if worst * 1e6 > opts.self_check_tol_um:
+        raise SelfCheckError(
+            f"self-check failed: the re-planned output strays {worst * 1e6:.1f} um from the intended carriage "
+            f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
+
+
+class _SegmentTable:
+    """The writer's segment table (int64 rows: output line, first and last sample, catch-up flag),
+    read forward in step with the re-planned moves, which come in line order."""
+
+    def __init__(self, path: str | None, head_len: int):
+        self.f = open(path, "rb") if path else None
+        self.head_len = head_len
+        self.buf = np.zeros((0, 4), np.int64)
+
+    def upto(self, line: int) -> np.ndarray:
+        """Rows of output lines ``<= line`` not returned before (lines shifted by the header)."""
+        while self.f is not None and (not len(self.buf) or self.buf[-1, 0] <= line):
+            raw = self.f.read(32 * 65536)
+            if not raw:
+                break
+            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, 4).copy()
+            rows[:, 0] += self.head_len
+            self.buf = np.concatenate([self.buf, rows])
+        n = int(np.searchsorted(self.buf[:, 0], line, side="right"))
+        out, self.buf = self.buf[:n], self.buf[n:]
+        return out
+
+    def close(self) -> None:
+        if self.f is not None:
+            self.f.close()
+
+
+def _distance_v(a, v0, vc, ta, tc, tau):
+    """Distance along planned trapezoids at times ``tau`` after their starts (all arrays), mm."""
+    d_a = (v0 + vc) * 0.5 * ta
+    t3 = tau - ta - tc
+    return np.where(tau < ta, v0 * tau + 0.5 * a * tau * tau,
+                    np.where(tau < ta + tc, d_a + vc * (tau - ta), d_a + vc * tc + vc * t3 - 0.5 * a * t3 * t3))
