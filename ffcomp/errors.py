@@ -76,3 +76,52 @@ class SelfCheckError(FfcompError, RuntimeError):
     """The re-planned output strays from the intended carriage commands beyond tolerance."""
 
     exit_code = 5
+
+
+class OutputError(FfcompError, OSError):
+    """An output file cannot be written (missing directory, read-only file system, no permission,
+    no space left, a directory named as the file).  Raised before any work where it can be foreseen.
+
+    Parameters
+    ----------
+    path : str
+        The output path (or directory) concerned.
+    cause : OSError or int or None
+        The underlying error, or its ``errno``.
+    reason : str
+        What could not be done.
+    """
+
+    exit_code = 6
+
+    def __init__(self, path: str, cause, reason: str):
+        import os
+
+        code = cause.errno if isinstance(cause, OSError) else cause
+        detail = os.strerror(code) if code else ""
+        msg = f"{path}: {reason}" + (f": {detail}" if detail and detail.lower() not in reason.lower() else "")
+        super().__init__(msg)
+        self.errno = code
+        self.filename = path
+        self.path, self.reason, self.message = path, reason, msg
+
+    def __str__(self) -> str:
+        return self.message
+
+
+class Interrupted(BaseException):
+    """A termination signal (SIGINT, SIGTERM, SIGHUP) arrived: unwinds like ``KeyboardInterrupt`` so
+    that every ``finally`` runs (temporary files removed, the output left as it was), then the CLI
+    exits with ``128 + signum``.  A ``BaseException`` so that ``except Exception`` does not swallow it.
+    """
+
+    def __init__(self, signum: int):
+        import signal
+
+        self.signum = signum
+        self.exit_code = 128 + signum
+        try:
+            self.name = signal.Signals(signum).name
+        except ValueError:
+            self.name = f"signal {signum}"
+        super().__init__(self.name)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -11,7 +13,7 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from ..errors import FfcompError
+from ..errors import FfcompError, Interrupted
 
 app = typer.Typer(
     name="ffcomp",
@@ -67,20 +69,92 @@ def parse_triple(text: str, what: str = "--at") -> tuple[float, float, float]:
     return vals  # type: ignore[return-value]
 
 
+#: signals that stop a run cleanly (``finally`` blocks run, temporary files go, exit 128 + signum)
+_STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+_UNCHANGED = "files are replaced only when complete, so the input and any existing output are unchanged"
+
+
+def _raise_interrupted(signum, frame):
+    # a second signal while unwinding must not cut the clean-up short
+    for s in _STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    raise Interrupted(signum)
+
+
+def _install_signal_handlers() -> dict | None:
+    """Route SIGINT/SIGTERM/SIGHUP to :class:`Interrupted`; returns the old handlers (``None`` when
+    not in the main thread, where handlers cannot be set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    old = {}
+    for s in _STOP_SIGNALS:
+        prev = signal.getsignal(s)
+        if prev is signal.SIG_IGN and s != signal.SIGINT:  # nohup: keep ignoring
+            continue
+        old[s] = prev
+        signal.signal(s, _raise_interrupted)
+    return old
+
+
+def _interrupted(name: str, code: int) -> None:
+    from ..io_atomic import cleanup_temps
+
+    cleanup_temps()
+    err_console.print(f"[bold red]interrupted:[/] {name}: stopped before finishing; {_UNCHANGED}; "
+                      "temporary files removed", highlight=False, soft_wrap=True)
+    sys.exit(code)
+
+
 def run_app(argv: list[str]) -> None:
-    """Run the typer app; an :class:`FfcompError` becomes a red one-line message and its exit code."""
+    """Run the typer app and turn every way it can end into a message and an honest exit code.
+
+    * :class:`FfcompError`: a red one-line message, its exit code;
+    * SIGINT / SIGTERM / SIGHUP: temporary files removed, a message, exit 128 + signum (130 for
+      Ctrl-C, 143 for SIGTERM), never 0 (a slicer hook would ship the uncompensated file);
+    * any other ``OSError`` (disk full, I/O error): a one-line message naming the file, exit 6.
+    """
+    old = _install_signal_handlers()
     try:
-        app(args=argv, prog_name="ffcomp", standalone_mode=False)
+        rv = app(args=argv, prog_name="ffcomp", standalone_mode=False)
+        if rv == 130:  # typer turns a KeyboardInterrupt it sees into Exit(130) and *returns* it
+            _interrupted("SIGINT", 130)
+        if isinstance(rv, int) and rv:
+            sys.exit(rv)
+    except Interrupted as e:
+        _interrupted(e.name, e.exit_code)
+    except KeyboardInterrupt:
+        _interrupted("SIGINT", 130)
     except FfcompError as e:
         err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
     except typer.Exit as e:
         sys.exit(e.exit_code)
     except typer.Abort:
-        err_console.print("aborted")
-        sys.exit(130)
+        _interrupted("aborted", 130)
+    except OSError as e:
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        err_console.print(f"[bold red]error:[/] {where}{e.strerror or e}; {_UNCHANGED}", highlight=False,
+                          soft_wrap=True)
+        sys.exit(6)
     except Exception as e:  # click usage errors (typer may vendor its own click: duck-type them)
         if hasattr(e, "show") and isinstance(getattr(e, "exit_code", None), int):
             e.show()
             sys.exit(e.exit_code)
         raise
+    finally:
+        for s, h in (old or {}).items():
+            signal.signal(s, h)
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from .. import __version__
+
+        typer.echo(f"ffcomp {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: Annotated[bool, typer.Option("--version", callback=_print_version, is_eager=True,
+                                                help="Print the ffcomp version and exit.")] = False) -> None:
+    """Model-based feedforward vibration compensation for delta 3D printers."""

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import os
+import sys
+import time
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
 from .common import JsonOpt, ProfileOpt, app, err_console, load_profile_opt, print_json
@@ -66,19 +68,63 @@ def compensate_cmd(
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
                              pin_holds=pin_holds, inverse=InverseConfig(method=method))
     show = progress and not json and os.environ.get("CI") != "true"
-    if show:
-        with Progress(TextColumn("[bold]compensating[/] {task.description}"), BarColumn(),
-                      TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn(), console=err_console,
-                      transient=True) as bar:
-            task = bar.add_task(source.name, total=1)
-
-            def cb(line, total):
-                bar.update(task, completed=line, total=max(total, 1))
-
-            summ = compensate_file(str(source), out, prof, opts, progress=cb)
+    if show and err_console.is_terminal:
+        with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),
+                      TextColumn("ETA"), TimeRemainingColumn(), TextColumn("elapsed"), TimeElapsedColumn(),
+                      console=err_console, transient=True) as bar:
+            summ = compensate_file(str(source), out, prof, opts, progress=BarProgress(bar, source.name))
+    elif show:
+        summ = compensate_file(str(source), out, prof, opts, progress=PlainProgress(source.name))
     else:
         summ = compensate_file(str(source), out, prof, opts)
     _report(summ.to_dict(), json, to_stderr=(out is None))
+
+
+#: what each stage of :func:`~ffcomp.pipeline.compensate_flow.compensate_file` does, for the bar
+STAGES = {"compensating": "compensating", "writing": "writing the output",
+          "self-check": "self-check: re-planning the output"}
+
+
+class BarProgress:
+    """A rich progress bar: one row per stage, the first with its percentage and ETA (a stage that
+    cannot measure its progress shows a moving bar and its elapsed time)."""
+
+    def __init__(self, bar: Progress, name: str):
+        self.bar, self.name = bar, name
+        self.task = bar.add_task(f"compensating {name}", total=1, pct="  0%")
+
+    def __call__(self, done: int, total: int) -> None:
+        self.bar.update(self.task, completed=done, total=max(total, 1), pct=f"{100 * done / max(total, 1):3.0f}%")
+
+    def stage(self, name: str, total: int) -> None:
+        t = self.bar.tasks[-1]
+        self.bar.update(self.task, completed=t.total, pct="done")
+        self.bar.stop_task(self.task)
+        self.task = self.bar.add_task(STAGES.get(name, name), total=None, pct="")
+
+
+class PlainProgress:
+    """Progress as plain lines on stderr (not a terminal: a log, a pipe): each stage, and every 10 %
+    of the compensation with its ETA."""
+
+    def __init__(self, name: str):
+        self.name, self.t0, self.next_pct = name, time.monotonic(), 10
+        self._say(f"compensating {name}")
+
+    def _say(self, msg: str) -> None:
+        sys.stderr.write(f"ffcomp: {msg}\n")
+        sys.stderr.flush()
+
+    def __call__(self, done: int, total: int) -> None:
+        pct = 100.0 * done / max(total, 1)
+        if pct >= self.next_pct and done > 0:
+            el = time.monotonic() - self.t0
+            eta = el * (total - done) / done
+            self._say(f"compensating {pct:3.0f}% (line {done:,} of {total:,}), ETA {eta:.0f} s")
+            self.next_pct = (int(pct) // 10 + 1) * 10
+
+    def stage(self, name: str, total: int) -> None:
+        self._say(f"{STAGES.get(name, name)} ({time.monotonic() - self.t0:.1f} s elapsed)")
 
 
 def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
@@ -92,6 +138,11 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
             print_json(d)
         return
     t = Table(title="ffcomp: compensation summary", title_justify="left", show_header=False)
+    if d.get("output"):
+        t.add_row("output", "stdout" if d["output"] == "-" else str(d["output"]))
+    if d.get("firmware"):
+        fl = d.get("source_flavour")
+        t.add_row("firmware assumed (profile)", d["firmware"] + (f"  (file sliced for {fl})" if fl else ""))
     fmt = {
         "rms_before_um": ("predicted vibration RMS, uncompensated", "{:.1f} um"),
         "rms_after_um": ("predicted vibration RMS, compensated", "{:.2f} um"),
@@ -105,6 +156,7 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "self_check_rms_um": ("self-check: RMS deviation", "{:.2f} um"),
         "self_check_catch_up_max_um": ("self-check: max deviation in catch-ups after holds", "{:.1f} um"),
         "header_accel_mm_s2": ("firmware ACCEL the output sets", "{:.0f} mm/s^2"),
+        "clamped": ("samples clamped to the workspace", "{}"),
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
         "segments": ("G1 segments written", "{}"),
@@ -117,4 +169,10 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
             t.add_row(label, f.format(v))
     if d.get("rms_before_um") and d.get("rms_after_um") is not None:
         t.add_row("predicted reduction", f"{(1 - d['rms_after_um'] / d['rms_before_um']) * 100:.1f} %")
+    if "warnings" in d:
+        t.add_row("warnings", f"{d['warnings']}" + ("  (listed below)" if d.get("notes") else ""))
+    if d.get("stale_temps_removed"):
+        t.add_row("leftover temp files of killed runs removed", f"{d['stale_temps_removed']}")
     err_console.print(t) if to_stderr else __import__("rich").get_console().print(t)
+    for msg in d.get("notes") or []:
+        err_console.print(f"[yellow]warning:[/] {msg}", highlight=False, soft_wrap=True)

@@ -21,10 +21,12 @@ import numpy as np
 from ..compensate.inverse import InverseConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
+from ..gcode.flavour import detect_flavour, flavour_mismatch
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
+from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import carriage_rates, forward, inverse
 from ..model.lpv import LpvModel
 from .header import header_accel, header_lines
@@ -99,6 +101,9 @@ class CompensationSummary:
     peak_command_accel_mm_s2: float = 0.0
     warnings: int = 0
     notes: list = field(default_factory=list)
+    firmware: str = ""
+    source_flavour: str | None = None
+    stale_temps_removed: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -158,21 +163,25 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
     _refuse_compensated(src)
+    if out_path is not None:  # a path that cannot be written fails now, not after all the work
+        out_path = check_output_path(out_path)
     total_lines = _count_lines(src)
     model = LpvModel.from_profile(profile)
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
     icfg = inverse_config(profile, opts)
     summ = CompensationSummary(source=src, output=str(out_path) if out_path else "-", method=opts.method,
-                               lines_in=total_lines)
+                               lines_in=total_lines, firmware=profile.limits.planner)
+    _check_flavour(src, profile, summ)
     out_dir = os.path.dirname(os.path.abspath(out_path)) if out_path else tempfile.gettempdir()
-    body_fd, body_path = tempfile.mkstemp(prefix=".ffcomp-body-", suffix=".gcode", dir=out_dir)
-    qfile_fd, qfile = tempfile.mkstemp(prefix=".ffcomp-q-", suffix=".f32", dir=out_dir)
-    os.close(qfile_fd)
-    seg_fd, segfile = tempfile.mkstemp(prefix=".ffcomp-seg-", suffix=".i64", dir=out_dir)
-    os.close(seg_fd)
-    final_tmp = None
+    summ.stale_temps_removed = len(sweep_stale(out_dir))  # leftovers of runs that were killed
+    body_path = qfile = segfile = final_tmp = None
     try:
+        body_fd, body_path = make_temp(out_dir, "body", ".gcode")
+        qfile_fd, qfile = make_temp(out_dir, "q", ".f32")
+        os.close(qfile_fd)
+        seg_fd, segfile = make_temp(out_dir, "seg", ".i64")
+        os.close(seg_fd)
         moves: dict = {}
         plan = GcodePlan(src, profile, lenient=opts.lenient)
         with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf, \
@@ -227,7 +236,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             for qc, meta in compensated_stream(plan, moves, profile, model, icfg, opts, summ, src):
                 emit(qc, meta)
             writer.finish()
-        summ.warnings = plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
+        summ.warnings += plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
+        _stage(progress, "writing", total_lines)
         summ.segments = writer.stats.segments
         if pred is not None:
             pred.flush()
@@ -238,7 +248,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
         head, foot = header_lines(profile, opts, src, accel)
-        final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
+        final_fd, final_tmp = make_temp(out_dir, "out", ".gcode")
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:
             for ln in head:
@@ -252,6 +262,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             os.fsync(fo.fileno())
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
+            _stage(progress, "self-check", total_lines)
             self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
         # success: move into place
         if out_path is None:
@@ -265,14 +276,31 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             except FileNotFoundError:
                 os.chmod(final_tmp, 0o644)
             os.replace(final_tmp, out_path)
+            keep_temp(final_tmp)
             final_tmp = None
     finally:
         for p in (body_path, qfile, segfile, final_tmp):
-            if p and os.path.exists(p):
-                os.unlink(p)
+            release_temp(p)
     summ.wall_time_s = time.perf_counter() - t_wall
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
+
+
+def _stage(progress, name: str, total: int) -> None:
+    """Tell a progress reporter that has a ``stage(name, total)`` method that a new stage begins."""
+    f = getattr(progress, "stage", None)
+    if f is not None:
+        f(name, total)
+
+
+def _check_flavour(src: str, profile, summ: CompensationSummary) -> None:
+    """Warn (counted, in the notes) when the file was sliced for other firmware than the profile's."""
+    fl = detect_flavour(src)
+    summ.source_flavour = fl.name if fl else None
+    msg = flavour_mismatch(fl, profile.limits.planner, src, profile.name)
+    if msg:
+        summ.warnings += 1
+        summ.notes.append(msg)
 
 
 def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, icfg: InverseConfig, opts,

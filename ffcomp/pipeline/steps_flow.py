@@ -7,13 +7,13 @@ re-planning, no z throttling, no G-code segment tolerance.  The file is written 
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ..gcode.planner import GcodePlan
+from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..model.lpv import LpvModel
 from ..steps import (
     STEPPERS,
@@ -58,6 +58,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     direction run); NPZ holds every step time in memory until it is written.
     """
     t0 = time.perf_counter()
+    out_path = check_output_path(out_path)  # fails now, not after the work
     model = LpvModel.from_profile(profile)
     dt = 1.0 / profile.limits.sample_rate_hz
     spm = profile.limits.steps_per_mm
@@ -68,15 +69,18 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
     npz = out_path.endswith(".npz")
     plain = csv or npz
     out_dir = os.path.dirname(os.path.abspath(out_path))
-    fd, tmp = tempfile.mkstemp(prefix=".ffcomp-steps-", suffix=os.path.splitext(out_path)[1], dir=out_dir)
+    sweep_stale(out_dir)
+    fd, tmp = make_temp(out_dir, "steps", os.path.splitext(out_path)[1])
     os.close(fd)
+    qfd, qpath = make_temp(out_dir, "stepsq", ".f64")
+    os.close(qfd)
     summ = StepsSummary(src, out_path, method)
     sink = qs = None
     try:
         sink = (_NpzSink if npz else _CsvSink if csv else FfstepsWriter)(tmp, spm)
         n0 = None
         k = 0
-        qs = SampleFile(tmp + ".q")  # every 10th command, for the read-back check (on disk)
+        qs = SampleFile(qpath)  # every 10th command, for the read-back check (on disk)
         last = None
         n_steps = 0
         moves: dict = {}
@@ -116,14 +120,15 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
         summ.steps = n_steps
         os.chmod(tmp, 0o644)
         os.replace(tmp, out_path)
+        keep_temp(tmp)
         tmp = None
     finally:
         if qs is not None:
             qs.close()
         if sink is not None:
             sink.close()
-        if tmp and os.path.exists(tmp):
-            os.unlink(tmp)
+        release_temp(tmp)
+        release_temp(qpath)
     summ.wall_time_s = time.perf_counter() - t0
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
