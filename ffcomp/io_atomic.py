@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import errno
 import os
 import re
 import secrets
@@ -138,14 +137,14 @@ def check_output_path(path: str | os.PathLike, what: str = "output") -> str:
         p = os.path.realpath(p)
     parent = os.path.dirname(os.path.abspath(p))
     if os.path.isdir(p):
-        raise OutputError(p, errno.EISDIR, f"the {what} path is a directory: give a file name")
+        raise OutputError(p, None, f"the {what} path is a directory: give a file name")
     if os.path.exists(p) and not stat.S_ISREG(os.stat(p).st_mode):
         raise OutputError(p, None, f"the {what} path exists and is not a regular file (a device or pipe "
                           "would be replaced): write to a regular file, or '-' for stdout")
     if not os.path.exists(parent):
-        raise OutputError(p, errno.ENOENT, f"the {what} directory {parent} does not exist")
+        raise OutputError(p, None, f"the {what} directory {parent} does not exist")
     if not os.path.isdir(parent):
-        raise OutputError(p, errno.ENOTDIR, f"{parent} is not a directory")
+        raise OutputError(p, None, f"{parent} is not a directory")
     try:
         fd, probe = make_temp(parent, "probe")
     except OutputError as e:

@@ -5,6 +5,8 @@ A profile is the one description of a printer every stage uses.  The TOML file i
 read and offers SI views (:meth:`PrinterProfile.geometry_si`) for the numeric kernels.
 
 Every value is validated on load, and an error names the dotted key, the value and the reason.
+The keys in :data:`REQUIRED` must be given (a default for them would describe another printer);
+``ffcomp_profile``, when present, must be the format version this ffcomp reads (1).
 
 Sections
 --------
@@ -258,6 +260,21 @@ _RULES: dict[str, dict[str, dict]] = {
 }
 _CLASSES = {"geometry": Geometry, "limits": Limits, "dynamics": Dynamics}
 
+#: the profile format version this ffcomp reads and writes (top-level ``ffcomp_profile``)
+PROFILE_VERSION = 1
+
+#: keys a profile must give: a printer is not described without them, and a default taken silently
+#: for one of them (the paper's stiffness, the paper's tower frame) would mis-time every move
+REQUIRED: dict[str, tuple[str, ...]] = {
+    "geometry": ("arm_length_mm", "delta_radius_mm", "tower_angles_deg", "print_radius_mm", "z_max_mm"),
+    "limits": ("max_velocity_mm_s", "max_accel_mm_s2", "planner"),
+    "dynamics": ("m", "c", "b", "k", "d0", "d1", "d2", "m_n", "m_f", "b_nt"),
+}
+
+#: optional limits whose default is another limit, as in Klipper (``max_z_velocity`` defaults to
+#: ``max_velocity``, ``max_z_accel`` to ``max_accel``)
+_DEFAULT_FROM = {"max_z_velocity_mm_s": "max_velocity_mm_s", "max_z_accel_mm_s2": "max_accel_mm_s2"}
+
 
 def _section(raw: dict, sec: str, source) -> Any:
     cls = _CLASSES[sec]
@@ -279,7 +296,23 @@ def _section(raw: dict, sec: str, source) -> Any:
             kw[key] = v
         else:
             kw[key] = _value(sec, key, v, source, **_RULES[sec][key])
+    if any(k not in kw for k in REQUIRED[sec]):
+        return None  # the values given are checked first; :func:`_require` names what is missing
+    if sec == "limits":
+        for key, other in _DEFAULT_FROM.items():
+            kw.setdefault(key, kw[other])
     return cls(**kw)
+
+
+def _require(raw: dict, source) -> None:
+    """Name the first required key (or section) the profile lacks: no silent defaults for them."""
+    for sec, keys in REQUIRED.items():
+        if sec not in raw:
+            raise ProfileError(sec, None, f"section [{sec}] missing (required keys: {', '.join(keys)})", source)
+        missing = [k for k in keys if k not in raw[sec]]
+        if missing:
+            also = f" (also missing: {', '.join(missing[1:])})" if missing[1:] else ""
+            raise ProfileError(f"{sec}.{missing[0]}", None, f"required key missing{also}", source)
 
 
 def _check_geometry(g: Geometry, source) -> None:
@@ -336,12 +369,17 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
         if key not in allowed:
             raise ProfileError(key, raw[key], f"unknown top-level key (known: {', '.join(sorted(allowed))})",
                                source)
+    version = raw.get("ffcomp_profile", PROFILE_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int) or version != PROFILE_VERSION:
+        raise ProfileError("ffcomp_profile", version, f"unsupported profile format version: this ffcomp "
+                           f"reads version {PROFILE_VERSION}", source)
     name = raw.get("name", Path(source).stem if source else "unnamed delta")
     if not isinstance(name, str):
         raise ProfileError("name", name, "expected a string", source)
     geometry = _section(raw, "geometry", source)
     limits = _section(raw, "limits", source)
     dynamics = _section(raw, "dynamics", source)
+    _require(raw, source)
     _check_geometry(geometry, source)
     _check_limits(limits, source)
     effects = raw.get("effects", [])
@@ -368,6 +406,9 @@ def load_profile(path: str | Path | None = None) -> PrinterProfile:
         text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise ProfileError("<file>", str(path), f"cannot read profile: {e.strerror or e}", str(path)) from e
+    except UnicodeDecodeError as e:
+        raise ProfileError("<file>", str(path), f"not a text (UTF-8 TOML) file: byte 0x{e.object[e.start]:02x} "
+                           f"at offset {e.start} is not UTF-8", str(path)) from e
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

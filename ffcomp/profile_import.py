@@ -22,10 +22,39 @@ from pathlib import Path
 from .errors import ProfileError
 from .profile import PrinterProfile, default_profile, profile_from_dict
 
-__all__ = ["from_klipper_cfg", "from_m665", "FIRMWARE_TOWER_ANGLES_DEG"]
+__all__ = ["from_klipper_cfg", "from_m665", "klipper_max_xy", "FIRMWARE_TOWER_ANGLES_DEG"]
 
 #: Tower angles (A, B, C) used by Klipper, Marlin and RepRapFirmware, degrees counter-clockwise from +x.
 FIRMWARE_TOWER_ANGLES_DEG = (210.0, 330.0, 90.0)
+
+#: Klipper (kinematics/delta.py) slows moves where the tower moves more than SLOW_RATIO times the
+#: nozzle's XY motion, and refuses XY beyond the point where that ratio reaches 4 * SLOW_RATIO
+KLIPPER_SLOW_RATIO = 3.0
+
+
+def klipper_max_xy(print_radius_mm: float, delta_radius_mm: float, arm_lengths_mm, step_dist_mm: float
+                   ) -> tuple[float, str]:
+    """The build radius Klipper's delta kinematics allows, and which of its three limits set it.
+
+    Klipper does not refuse a ``print_radius`` the arms cannot reach: it takes the smallest of the
+    configured ``print_radius`` (default ``delta_radius``), ``min(arm_length) - delta_radius``, and the
+    radius where a tower moves ``4 * SLOW_RATIO`` times as fast as the nozzle,
+    ``r sqrt(L^2 / (r^2 + 1) - h^2) + h - delta_radius`` with ``r = 12`` and ``h`` half the smallest
+    step distance.
+
+    Returns
+    -------
+    max_xy_mm : float
+    limit : str
+        ``"print_radius"``, ``"arm_length - delta_radius"`` or ``"tower speed ratio 12"``.
+    """
+    L = float(min(arm_lengths_mm))
+    h = 0.5 * float(step_dist_mm)
+    ratio = 4.0 * KLIPPER_SLOW_RATIO
+    by_ratio = ratio * math.sqrt(L * L / (ratio * ratio + 1.0) - h * h) + h - delta_radius_mm
+    cands = [(print_radius_mm, "print_radius"), (L - delta_radius_mm, "arm_length - delta_radius"),
+             (by_ratio, f"tower speed ratio {ratio:g}")]
+    return min(cands, key=lambda c: c[0])
 
 
 def _merge(profile: PrinterProfile, geometry: dict, limits: dict, name: str, source: str) -> PrinterProfile:
@@ -58,14 +87,24 @@ def _read_klipper(text: str) -> configparser.ConfigParser:
     return cp
 
 
-def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None) -> PrinterProfile:
-    """Profile from a Klipper ``printer.cfg`` (delta kinematics)."""
+def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes: list | None = None
+                     ) -> PrinterProfile:
+    """Profile from a Klipper ``printer.cfg`` (delta kinematics).
+
+    The print radius is the build radius Klipper itself allows (:func:`klipper_max_xy`): Klipper caps
+    a ``print_radius`` the arms cannot serve instead of refusing it, and so does the import.  Where
+    that radius puts the arms flatter than the base profile's ``min_arm_angle_deg``, the angle is
+    lowered to what Klipper accepts there.  What was capped is appended to ``notes``.
+    """
     path = str(path)
     base = base or default_profile()
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as e:
         raise ProfileError("<file>", path, f"cannot read: {e.strerror or e}", path) from e
+    except UnicodeDecodeError as e:
+        raise ProfileError("<file>", path, f"not a text file: byte 0x{e.object[e.start]:02x} at offset "
+                           f"{e.start} is not UTF-8", path) from e
     try:
         cp = _read_klipper(text)
     except configparser.Error as e:
@@ -98,11 +137,33 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None) -> Pr
         radii.append(radius)
     max_v = get("printer", "max_velocity")
     max_a = get("printer", "max_accel")
+    for i, arm in enumerate(arms):
+        if arm <= radius:  # Klipper: arm_length must be above delta_radius
+            raise ProfileError(f"[stepper_{'abc'[i]}] arm_length", arm, f"must exceed delta_radius = {radius}",
+                               path)
+    step_dists = []
+    for t in "abc":
+        sec = f"stepper_{t}" if cp.has_option(f"stepper_{t}", "rotation_distance") else "stepper_a"
+        if cp.has_option(sec, "rotation_distance"):
+            step_dists.append(get(sec, "rotation_distance") / (get(sec, "full_steps_per_rotation", 200.0)
+                                                                * get(sec, "microsteps", 16.0)))
+    cfg_pr = get("printer", "print_radius", radius)
+    print_radius, limit = klipper_max_xy(cfg_pr, radius, arms, min(step_dists) if step_dists else 0.0)
+    min_arm_angle = base.geometry.min_arm_angle_deg
+    if print_radius < cfg_pr:
+        # the flattest arm at the capped radius: the nozzle opposite a tower
+        flat = min(math.degrees(math.asin(math.sqrt(max(a * a - (radius + print_radius) ** 2, 0.0)) / a))
+                   for a in arms)
+        min_arm_angle = min(min_arm_angle, math.floor(flat * 100.0) / 100.0 - 0.01)
+        if notes is not None:
+            notes.append(f"print radius capped as Klipper does: {cfg_pr:g} mm configured, {print_radius:.3f} mm "
+                         f"allowed (limit: {limit}); min_arm_angle_deg {min_arm_angle:g}")
     geom = {
         "arm_length_mm": arms,
         "delta_radius_mm": radii,
         "tower_angles_deg": angles,
-        "print_radius_mm": get("printer", "print_radius", radius),
+        "print_radius_mm": print_radius,
+        "min_arm_angle_deg": min_arm_angle,
         "z_min_mm": get("printer", "minimum_z_position", 0.0),
         "z_max_mm": min(get(f"stepper_{t}", "position_endstop", get("stepper_a", "position_endstop"))
                         for t in "abc" if cp.has_section(f"stepper_{t}")),
@@ -130,7 +191,9 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None) -> Pr
     return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path)
 
 
-_M665_WORD = re.compile(r"([A-Za-z])\s*([-+0-9.:]+)")
+#: a parameter letter and its value: everything up to white space or the next letter that starts a
+#: number (``L250R130``), so that ``L abc`` reads as L = "abc" (not a number) rather than as missing
+_M665_WORD = re.compile(r"([A-Za-z])\s*(\S*?)(?=\s|[A-Za-z][-+.\d]|$)")
 
 
 def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm: float | None = None,
@@ -140,7 +203,8 @@ def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm:
     ``X``, ``Y``, ``Z`` are tower angle corrections in degrees added to 210/330/90; ``R`` the
     delta radius, ``L`` the diagonal rod (``L250:251:249`` per tower on RRF), ``B`` the printable
     (RRF) or calibration (Marlin) radius, used as print radius unless ``print_radius_mm`` is given,
-    ``H`` the homed height (taken as ``z_max_mm``).
+    ``H`` the homed height (taken as ``z_max_mm``).  Without ``B`` the print radius must be given
+    (``print_radius_mm``): a default would be another printer's.
     """
     base = base or default_profile()
     text = line.split(";")[0].strip()
@@ -148,6 +212,8 @@ def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm:
         raise ProfileError("M665", line, "expected a line starting with M665")
     words = {}
     for letter, val in _M665_WORD.findall(text[4:]):
+        if letter.upper() in words:
+            raise ProfileError(f"M665 {letter.upper()}", val, "given twice")
         words[letter.upper()] = val
     def num(letter, default=None):
         if letter not in words:
@@ -155,9 +221,12 @@ def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm:
                 raise ProfileError(f"M665 {letter}", None, "missing", None)
             return default
         try:
-            return float(words[letter])
+            v = float(words[letter])
         except ValueError:
             raise ProfileError(f"M665 {letter}", words[letter], "not a number") from None
+        if not math.isfinite(v):
+            raise ProfileError(f"M665 {letter}", words[letter], "not a finite number")
+        return v
     if "L" in words and ":" in words["L"]:
         try:
             arms = [float(v) for v in words["L"].split(":")]
@@ -171,11 +240,13 @@ def from_m665(line: str, base: PrinterProfile | None = None, *, print_radius_mm:
     corr = [num("X", 0.0), num("Y", 0.0), num("Z", 0.0)]
     angles = [a + c for a, c in zip(FIRMWARE_TOWER_ANGLES_DEG, corr)]
     geom = {"arm_length_mm": arms, "delta_radius_mm": radius, "tower_angles_deg": angles}
-    pr = print_radius_mm if print_radius_mm is not None else num("B", 0.0) or None
-    if pr is not None:
-        geom["print_radius_mm"] = pr
-    elif not math.isfinite(base.geometry.print_radius_mm):
-        raise ProfileError("M665 B", None, "print radius unknown: give B or --print-radius")
+    if print_radius_mm is not None:
+        geom["print_radius_mm"] = print_radius_mm
+    elif "B" in words:
+        geom["print_radius_mm"] = num("B")
+    else:
+        raise ProfileError("M665 B", None, "missing: the print radius is unknown (give B in the M665 line, "
+                           "or --print-radius)")
     if "H" in words:
         geom["z_max_mm"] = num("H")
     prof = _merge(base, geom, {"planner": "marlin"} if firmware == "marlin" else {},

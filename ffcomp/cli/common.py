@@ -12,6 +12,7 @@ from typing import Annotated, Any, Optional
 import numpy as np
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from ..errors import FfcompError, Interrupted
 
@@ -100,7 +101,7 @@ def _interrupted(name: str, code: int) -> None:
     from ..io_atomic import cleanup_temps
 
     cleanup_temps()
-    err_console.print(f"[bold red]interrupted:[/] {name}: stopped before finishing; {_UNCHANGED}; "
+    err_console.print(f"[bold red]interrupted[/] by {name}: stopped before finishing; {_UNCHANGED}; "
                       "temporary files removed", highlight=False, soft_wrap=True)
     sys.exit(code)
 
@@ -124,8 +125,8 @@ def run_app(argv: list[str]) -> None:
         _interrupted(e.name, e.exit_code)
     except KeyboardInterrupt:
         _interrupted("SIGINT", 130)
-    except FfcompError as e:
-        err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+    except FfcompError as e:  # escaped: messages hold "[printer]" and other brackets rich would eat
+        err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
     except typer.Exit as e:
         sys.exit(e.exit_code)
@@ -133,7 +134,7 @@ def run_app(argv: list[str]) -> None:
         _interrupted("aborted", 130)
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
-        err_console.print(f"[bold red]error:[/] {where}{e.strerror or e}; {_UNCHANGED}", highlight=False,
+        err_console.print(f"[bold red]error:[/] {escape(where + str(e.strerror or e))}; {_UNCHANGED}", highlight=False,
                           soft_wrap=True)
         sys.exit(6)
     except Exception as e:  # click usage errors (typer may vendor its own click: duck-type them)

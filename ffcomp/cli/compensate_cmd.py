@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -109,13 +110,16 @@ class PlainProgress:
 
     def __init__(self, name: str):
         self.name, self.t0, self.next_pct = name, time.monotonic(), 10
-        self._say(f"compensating {name}")
+        self.started = False
 
     def _say(self, msg: str) -> None:
         sys.stderr.write(f"ffcomp: {msg}\n")
         sys.stderr.flush()
 
     def __call__(self, done: int, total: int) -> None:
+        if not self.started:  # said only once the work runs (a bad output path fails before)
+            self.started = True
+            self._say(f"compensating {self.name}")
         pct = 100.0 * done / max(total, 1)
         if pct >= self.next_pct and done > 0:
             el = time.monotonic() - self.t0
@@ -175,4 +179,4 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         t.add_row("leftover temp files of killed runs removed", f"{d['stale_temps_removed']}")
     err_console.print(t) if to_stderr else __import__("rich").get_console().print(t)
     for msg in d.get("notes") or []:
-        err_console.print(f"[yellow]warning:[/] {msg}", highlight=False, soft_wrap=True)
+        err_console.print(f"[yellow]warning:[/] {escape(str(msg))}", highlight=False, soft_wrap=True)

@@ -6,8 +6,9 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.markup import escape
 
-from .common import ProfileOpt, app, console, load_profile_opt
+from .common import ProfileOpt, app, console, err_console, load_profile_opt
 
 profile_app = typer.Typer(help="Printer profiles: print the default, import firmware geometry.",
                           no_args_is_help=True)
@@ -22,6 +23,9 @@ def dump(profile: ProfileOpt = None,
 
     prof = load_profile_opt(profile)
     if output:
+        from ..io_atomic import check_output_path
+
+        check_output_path(output, "profile")
         save_profile(prof, output)
         console.print(f"wrote {output}")
     else:
@@ -43,10 +47,23 @@ def import_cmd(
 
     if (klipper is None) == (m665 is None):
         raise typer.BadParameter("give exactly one of --klipper or --m665")
+    from ..io_atomic import check_output_path
+
+    if firmware not in ("marlin", "reprap"):
+        raise typer.BadParameter(f"--firmware must be marlin or reprap, got {firmware!r}")
+    check_output_path(output, "profile")
     base = load_profile_opt(profile)
-    prof = from_klipper_cfg(klipper, base) if klipper else from_m665(m665, base, print_radius_mm=print_radius,
-                                                                      firmware=firmware)
+    notes: list[str] = []
+    prof = (from_klipper_cfg(klipper, base, notes=notes) if klipper
+            else from_m665(m665, base, print_radius_mm=print_radius, firmware=firmware))
     save_profile(prof, output)
     g = prof.geometry
-    console.print(f"wrote {output}: arms {g.arm_length_mm} mm, radius {g.delta_radius_mm} mm, towers at "
-                  f"{g.tower_angles_deg} deg, print radius {g.print_radius_mm} mm")
+
+    def mm(v):
+        return ", ".join(f"{x:g}" for x in dict.fromkeys(v)) if isinstance(v, tuple) else f"{v:g}"
+
+    console.print(f"wrote {output}: arms {mm(g.arm_length_mm)} mm, radius {mm(g.delta_radius_mm)} mm, towers at "
+                  f"{mm(g.tower_angles_deg)} deg, print radius {g.print_radius_mm:.2f} mm, planner "
+                  f"{prof.limits.planner}", highlight=False)
+    for n in notes:
+        err_console.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True)

@@ -38,6 +38,9 @@ def header_lines(profile, opts, src: str, accel: float) -> tuple[list[str], list
                 f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g} ; ffcomp: restore the profile's limits"]
     else:
         head += [f"M204 P{accel:.0f} T{accel:.0f}", f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f}"]
-        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} ; ffcomp: restore the profile's limits"]
+        # restore every limit the header raised: M204 and M201 (Z: the profile's max_z_accel)
+        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} ; ffcomp: restore the profile's limits",
+                f"M201 X{lim.max_accel_mm_s2:g} Y{lim.max_accel_mm_s2:g} Z{lim.max_z_accel_mm_s2:g} "
+                "; ffcomp: restore the profile's limits"]
     head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
     return head, foot
