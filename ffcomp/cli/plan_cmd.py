@@ -95,6 +95,11 @@ def plan(
     if planner is not None and planner not in PLANNERS:
         raise typer.BadParameter(f"unknown planner {planner!r} (known: {', '.join(PLANNERS)})",
                                  param_hint="--planner")
+    from ..io_atomic import check_output_path
+
+    for p, what in ((csv, "CSV"), (plot, "plot")):
+        if p is not None:
+            check_output_path(p, what)
     prof = load_profile_opt(profile)
     res = summarize_gcode(gcode, prof, lenient=lenient, firmware=planner, trace=plot is not None)
     s, trace = res if plot is not None else (res, None)

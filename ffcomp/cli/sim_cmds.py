@@ -45,6 +45,10 @@ def simulate_cmd(
     for p, hint in ((gcode, "GCODE"), (compare, "--compare")):
         if p is not None and not Path(p).is_file():
             raise typer.BadParameter(f"no such file: {p}", param_hint=hint)
+    if plot:  # before the simulation, not after it
+        from ..io_atomic import check_output_path
+
+        check_output_path(f"{plot}_time.png", "plot")
     prof = load_profile_opt(profile)
     rep = sim_flow.simulate_gcode(prof, gcode, compare=compare, shaper=shaper, shape_z=shape_z, quantize=quantize)
     files = sim_flow.write_sim_plots(rep, plot, print_radius_mm=prof.geometry.print_radius_mm) if plot else []
@@ -146,6 +150,11 @@ def sim_measure_cmd(
         spec.validate()
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+    from ..io_atomic import check_output_path
+
+    for p, what in ((output_file, "FRF file"), (plot, "plot")):
+        if p is not None:
+            check_output_path(p, what)
     prof = load_profile_opt(profile)
     pos = parse_triple(at)
     try:
