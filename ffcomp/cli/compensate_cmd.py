@@ -176,7 +176,7 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
     if "warnings" in d:
         t.add_row("warnings", f"{d['warnings']}" + ("  (listed below)" if d.get("notes") else ""))
     if d.get("stale_temps_removed"):
-        t.add_row("leftover temp files of killed runs removed", f"{d['stale_temps_removed']}")
+        t.add_row("stale temp files removed (killed runs)", f"{d['stale_temps_removed']}")
     err_console.print(t) if to_stderr else __import__("rich").get_console().print(t)
     for msg in d.get("notes") or []:
         err_console.print(f"[yellow]warning:[/] {escape(str(msg))}", highlight=False, soft_wrap=True)
