@@ -142,6 +142,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
             print_json(d)
         return
     t = Table(title="ffcomp: compensation summary", title_justify="left", show_header=False)
+    t.add_column()
+    t.add_column(overflow="fold")  # a long output path is shown whole, folded, never cut
     if d.get("output"):
         t.add_row("output", "stdout" if d["output"] == "-" else str(d["output"]))
     if d.get("firmware"):
