@@ -241,7 +241,8 @@ delta_radius: 63.00
 
 
 @pytest.mark.parametrize("text,arm,radius,step_mm", [(KLIPPER_EXAMPLE_DELTA, 333.0, 174.75, 40 / 3200),
-                                                     (KLIPPER_MINI_DELTA, 120.8, 63.0, 56 / 3200)])
+                                                     (KLIPPER_MINI_DELTA, 120.8, 63.0, 56 / 3200)],
+                         ids=["example-delta", "monoprice-mini-delta"])
 def test_klipper_configs_import_with_the_radius_klipper_allows(tmp_path, capsys, text, arm, radius, step_mm):
     """Klipper caps the build radius where a tower would move 12x as fast as the nozzle (4 x
     SLOW_RATIO); checked here from the geometry itself: at the imported radius, with the nozzle

@@ -55,7 +55,8 @@ def _env() -> dict:
     return env
 
 
-def _start_and_signal(cmd: list[str], sig: int, watch: Path, wait_line: str | None, timeout_s: float = 60.0):
+def _start_and_signal(cmd: list[str], sig: int, watch: Path, wait_line: str | None, timeout_s: float = 60.0,
+                      times: int = 1):
     """Start ``cmd``; once it is working (``wait_line`` on stderr, if given, and a temporary file in
     ``watch``), send ``sig``.  Returns (returncode, stderr, temp files seen before the signal)."""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(),
@@ -75,7 +76,9 @@ def _start_and_signal(cmd: list[str], sig: int, watch: Path, wait_line: str | No
             time.sleep(0.02)
         else:
             pytest.fail(f"never started working within {timeout_s} s:\n{''.join(lines)}")
-        proc.send_signal(sig)
+        for _ in range(times):
+            proc.send_signal(sig)
+            time.sleep(0.005)
         proc.wait(timeout=timeout_s)
     finally:
         if proc.poll() is None:
@@ -91,10 +94,13 @@ def long_src(tmp_path_factory):
     return long_gcode(tmp_path_factory.mktemp("long") / "long.gcode")
 
 
-@pytest.mark.parametrize("command,sig", [("compensate", signal.SIGINT), ("compensate", signal.SIGTERM),
-                                         ("hook", signal.SIGINT), ("hook", signal.SIGTERM),
-                                         ("plan", signal.SIGINT)])
-def test_signal_exits_honestly_and_leaves_nothing(tmp_path, long_src, command, sig):
+@pytest.mark.parametrize("command,sig,times", [("compensate", signal.SIGINT, 1), ("compensate", signal.SIGTERM, 1),
+                                               ("compensate", signal.SIGINT, 3), ("hook", signal.SIGINT, 1),
+                                               ("hook", signal.SIGTERM, 1), ("plan", signal.SIGINT, 1)],
+                         ids=["compensate-SIGINT", "compensate-SIGTERM", "compensate-SIGINTx3", "hook-SIGINT",
+                              "hook-SIGTERM", "plan-SIGINT"])
+def test_signal_exits_honestly_and_leaves_nothing(tmp_path, long_src, command, sig, times):
+    """``times`` > 1: an impatient user presses Ctrl-C again while the clean-up runs."""
     src = tmp_path / "in.gcode"
     src.write_bytes(long_src.read_bytes())
     old = tmp_path / "out.gcode"
@@ -107,7 +113,7 @@ def test_signal_exits_honestly_and_leaves_nothing(tmp_path, long_src, command, s
         cmd, wait = base + ["hook", str(src)], None
     else:
         cmd, wait = base + ["plan", str(src), "--csv", str(old)], None
-    rc, err, seen = _start_and_signal(cmd, sig, tmp_path, wait)
+    rc, err, seen = _start_and_signal(cmd, sig, tmp_path, wait, times=times)
     assert seen, "the signal must arrive while temporary files exist"
     assert rc == 128 + sig, err  # 130 for Ctrl-C, 143 for SIGTERM: never 0 (a slicer would ship the file)
     assert f"interrupted by {signal.Signals(sig).name}" in err and "unchanged" in err

@@ -72,6 +72,7 @@ def parse_triple(text: str, what: str = "--at") -> tuple[float, float, float]:
 
 #: signals that stop a run cleanly (``finally`` blocks run, temporary files go, exit 128 + signum)
 _STOP_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+_STOPPING = False  # set once a stop signal is being handled: the process is on its way out
 _UNCHANGED = "files are replaced only when complete, so the input and any existing output are unchanged"
 
 
@@ -100,6 +101,10 @@ def _install_signal_handlers() -> dict | None:
 def _interrupted(name: str, code: int) -> None:
     from ..io_atomic import cleanup_temps
 
+    global _STOPPING
+    _STOPPING = True
+    for s in _STOP_SIGNALS:  # the process is ending: further signals must not cut the clean-up short
+        signal.signal(s, signal.SIG_IGN)
     cleanup_temps()
     err_console.print(f"[bold red]interrupted[/] by {name}: stopped before finishing; {_UNCHANGED}; "
                       "temporary files removed", highlight=False, soft_wrap=True)
@@ -114,6 +119,8 @@ def run_app(argv: list[str]) -> None:
       Ctrl-C, 143 for SIGTERM), never 0 (a slicer hook would ship the uncompensated file);
     * any other ``OSError`` (disk full, I/O error): a one-line message naming the file, exit 6.
     """
+    global _STOPPING
+    _STOPPING = False
     old = _install_signal_handlers()
     try:
         rv = app(args=argv, prog_name="ffcomp", standalone_mode=False)
@@ -143,8 +150,11 @@ def run_app(argv: list[str]) -> None:
             sys.exit(e.exit_code)
         raise
     finally:
-        for s, h in (old or {}).items():
-            signal.signal(s, h)
+        # restored for an in-process caller (tests) unless the run was interrupted: the process is then
+        # exiting, and a restored default handler would turn a late second Ctrl-C into a kill by SIGINT
+        if not _STOPPING:
+            for s, h in (old or {}).items():
+                signal.signal(s, h)
 
 
 def _print_version(value: bool) -> None:
