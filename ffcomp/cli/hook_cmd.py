@@ -52,5 +52,8 @@ def hook_cmd(
     reduction = ""
     if summ.rms_before_um:
         reduction = (f", predicted vibration {summ.rms_before_um:.1f} -> {summ.rms_after_um:.2f} um RMS")
-    err_console.print(f"ffcomp: compensated {gcode}{name} in {summ.wall_time_s:.1f} s "
-                      f"({summ.speed_ratio:.0f}x print time){reduction}", highlight=False)
+    warn = f", {summ.warnings} warning(s)" if summ.warnings else ""
+    err_console.print(f"ffcomp: compensated {gcode}{name} for {summ.firmware} in {summ.wall_time_s:.1f} s "
+                      f"({summ.speed_ratio:.0f}x print time){reduction}{warn}", highlight=False, markup=False)
+    for msg in summ.notes:
+        err_console.print(f"ffcomp: warning: {msg}", highlight=False, markup=False, soft_wrap=True)

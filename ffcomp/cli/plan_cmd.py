@@ -7,6 +7,7 @@ from typing import Annotated, Optional
 
 import numpy as np
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from .common import JsonOpt, PlotOpt, ProfileOpt, app, console, err_console, load_profile_opt, print_json
@@ -132,5 +133,8 @@ def plan(
     if plot is not None:
         t.add_row("plot", str(plot))
     console.print(t)
-    for msg in s.warning_messages:
-        err_console.print(f"[yellow]warning:[/] {msg}", highlight=False, soft_wrap=True)
+    from ..gcode.flavour import detect_flavour, flavour_mismatch
+
+    flavour_note = flavour_mismatch(detect_flavour(str(gcode)), s.planner, str(gcode), prof.name)
+    for msg in list(s.warning_messages) + ([flavour_note] if flavour_note else []):
+        err_console.print(f"[yellow]warning:[/] {escape(str(msg))}", highlight=False, soft_wrap=True)

@@ -99,5 +99,5 @@ def flavour_mismatch(flavour: Flavour | None, planner: str, path: str, profile_n
     else:
         advice = "ffcomp times files for klipper or marlin only: re-slice for the printer's firmware."
     return (f"{path}:{flavour.line}: the file was sliced for {flavour.name} ({flavour.text!r}) but the "
-            f"profile '{profile_name}' is for {planner}: the output is timed by {planner}'s planner and its "
-            f"header sets {head}. {advice}")
+            f"profile '{profile_name}' is for {planner}: ffcomp times the moves with {planner}'s planner and a "
+            f"compensated output's header sets {head}. {advice}")
