@@ -177,13 +177,13 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     summ.stale_temps_removed = len(sweep_stale(out_dir))  # leftovers of runs that were killed
     body_path = qfile = segfile = final_tmp = None
     try:
-        body_fd, body_path = make_temp(out_dir, "body", ".gcode")
         qfile_fd, qfile = make_temp(out_dir, "q", ".f32")
         os.close(qfile_fd)
         seg_fd, segfile = make_temp(out_dir, "seg", ".i64")
         os.close(seg_fd)
         moves: dict = {}
         plan = GcodePlan(src, profile, lenient=opts.lenient)
+        body_fd, body_path = make_temp(out_dir, "body", ".gcode")  # opened at once below: no fd leaks
         with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf, \
                 open(segfile, "wb") as sf:
             lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
