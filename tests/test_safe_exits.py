@@ -325,3 +325,18 @@ def test_version(capsys):
 
     code, out, _ = run(capsys, "--version")
     assert code == 0 and out.strip() == f"ffcomp {__version__}"
+
+
+def test_temp_registry_names_and_cleanup(tmp_path):
+    """Temp names carry host tag and PID (for the sweep); the at-exit clean-up removes what is left."""
+    from ffcomp.io_atomic import _HOST, cleanup_temps, keep_temp, make_temp
+
+    fd1, a = make_temp(tmp_path, "body", ".gcode")
+    fd2, b = make_temp(tmp_path, "out", ".gcode")
+    os.close(fd1)
+    os.close(fd2)
+    assert os.path.basename(a).startswith(f".ffcomp-body-{_HOST}-{os.getpid()}-") and a.endswith(".gcode")
+    os.replace(b, tmp_path / "final.gcode")
+    keep_temp(b)  # renamed into place: no longer a temp file
+    assert cleanup_temps() == 1 and not os.path.exists(a) and (tmp_path / "final.gcode").exists()
+    assert cleanup_temps() == 0
