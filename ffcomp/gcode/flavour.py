@@ -93,7 +93,10 @@ def flavour_mismatch(flavour: Flavour | None, planner: str, path: str, profile_n
     if flavour is None or flavour.family == planner:
         return None
     head = ("SET_VELOCITY_LIMIT (a Klipper command)" if planner == "klipper" else "M204/M201 (Marlin commands)")
-    if flavour.family in ("klipper", "marlin"):
+    if flavour.family == "marlin" and planner == "klipper":
+        advice = ("Klipper runs Marlin-flavoured G-code, so nothing is wrong if this printer runs Klipper; if it "
+                  "runs Marlin, use a profile with planner = \"marlin\".")
+    elif flavour.family in ("klipper", "marlin"):
         advice = (f"Use a profile with planner = \"{flavour.family}\" if the printer runs {flavour.family}, "
                   f"or re-slice for {planner}.")
     else:
