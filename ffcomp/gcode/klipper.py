@@ -178,6 +178,8 @@ class KlipperPlanner:
         self.kin = KlipperDelta(profile, self.max_velocity, self.max_accel)
         self._corner_v2 = JUNCTION_RULES[self.name]
         self.commanded_pos = [float(v) for v in start_position_mm]
+        self.stops = 0  # stop commands met (see stop())
+        self.on_stop = None  # callable(t_s, lineno) told the print time of every stop
         self.queue: list[_Move] = []
         self.junction_flush = BUFFER_TIME_HIGH
         self.need_prime = True
@@ -412,6 +414,13 @@ class KlipperPlanner:
             self.dwell(MOTOR_OFF_DWELL_S, lineno)
         else:
             self._flush_lookahead()
+
+    def stop(self, command: str, lineno: int) -> None:
+        """A command that stops or moves the machine on its own: flush to rest first (as M400)."""
+        self._flush_lookahead()
+        self.stops += 1
+        if self.on_stop is not None:
+            self.on_stop(self.print_time, lineno)
 
     def home(self, position, lineno: int) -> None:
         self._flush_lookahead()

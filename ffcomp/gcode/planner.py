@@ -4,8 +4,12 @@ The firmware variants live in :data:`PLANNERS` (name -> planner class); the prof
 ``limits.planner`` picks one (``firmware=`` overrides it).  Every variant has the same interface:
 
 ``move(end, speed_mm_s, line)``, ``dwell(seconds, lineno)``, ``sync(reason, lineno)``,
-``home(position, lineno)``, ``limits(op, line)``, ``finish()`` and ``take()`` (the moves finalized so
-far, in order).
+``stop(command, lineno)``, ``home(position, lineno)``, ``limits(op, line)``, ``finish()`` and ``take()``
+(the moves finalized so far, in order).
+
+A stop (:class:`~ffcomp.gcode.records.Stop`: M600, PAUSE, T1, G29, G10, an unknown macro...) flushes the
+lookahead like M400, so the toolhead is at rest when the firmware runs the command; the planner counts
+it (``stops``) and reports its print time to ``on_stop(t_s, lineno)`` if that is set.
 
 Planning streams: the lookahead queue holds only the moves that can still change (Klipper: about
 0.25-2 s of motion; Marlin: the block buffer), so memory does not grow with the file.
@@ -24,7 +28,7 @@ from .klipper import KlipperPlanner
 from .marlin import MarlinPlanner
 from .moves import PlannedMove
 from .parser import GcodeParser, parse_gcode
-from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Sync
+from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
 
 __all__ = ["PLANNERS", "plan_moves", "plan_gcode", "GcodePlan", "make_planner"]
 
@@ -55,6 +59,10 @@ def _sync(p, op: Sync, line: GcodeLine) -> None:
     p.sync(op.reason, line.lineno)
 
 
+def _stop(p, op: Stop, line: GcodeLine) -> None:
+    p.stop(op.command, line.lineno)
+
+
 def _limits(p, op: LimitsChange, line: GcodeLine) -> None:
     p.limits(op, line)
 
@@ -69,6 +77,7 @@ _OPS = {
     Dwell: _dwell,
     Home: _home,
     Sync: _sync,
+    Stop: _stop,
     LimitsChange: _limits,
     ModeChange: _nothing,
 }
@@ -137,13 +146,16 @@ class GcodePlan:
         Position before the first line (the machine is assumed homed there).
     path : str, optional
         Name for error messages when ``source`` is not a file name.
+    unknown_policy : str
+        What an unknown macro or G code is (``stop``, ``pass`` or ``refuse``; see
+        :mod:`ffcomp.gcode.commands`).
     **planner_kw
         Passed to the planner class.
     """
 
     def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
                  arc_resolution_mm: float = 1.0, start_position_mm=(0.0, 0.0, 0.0, 0.0),
-                 path: str | None = None, **planner_kw):
+                 path: str | None = None, unknown_policy: str = "stop", **planner_kw):
         self.profile = profile
         self.firmware = firmware or profile.limits.planner
         if self.firmware not in PLANNERS:
@@ -151,7 +163,8 @@ class GcodePlan:
         pkw = {} if path is None else {"path": path}
         self.parser: GcodeParser = parse_gcode(
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
-            home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm)
+            home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm,
+            unknown_policy=unknown_policy)
         self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
                                     start_position_mm=start_position_mm, **planner_kw)
         self._used = False

@@ -42,6 +42,9 @@ class PlanSummary:
     bbox_min_mm, bbox_max_mm : tuple of 3 float
         Extent of the XYZ path.
     warning_messages : tuple of str
+    command_counts : dict
+        Non-motion commands per class (``pass``, ``state``, ``stop``, ``unknown``, ``skipped``; see
+        :mod:`ffcomp.gcode.commands`).
     """
 
     path: str
@@ -64,6 +67,7 @@ class PlanSummary:
     bbox_min_mm: tuple
     bbox_max_mm: tuple
     warning_messages: tuple = field(default=())
+    command_counts: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -210,6 +214,7 @@ def summarize_gcode(source, profile, *, lenient: bool = False, firmware: str | N
         bbox_min_mm=tuple(acc.lo) if finite else (0.0, 0.0, 0.0),
         bbox_max_mm=tuple(acc.hi) if finite else (0.0, 0.0, 0.0),
         warning_messages=tuple(plan.parser.warning_messages),
+        command_counts=dict(plan.parser.counts),
     )
     if not trace:
         return s
