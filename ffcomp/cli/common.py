@@ -72,7 +72,9 @@ def run_app(argv: list[str]) -> None:
     try:
         app(args=argv, prog_name="ffcomp", standalone_mode=False)
     except FfcompError as e:
-        err_console.print(f"[bold red]error:[/] {e}", highlight=False, soft_wrap=True)
+        from rich.markup import escape
+
+        err_console.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False, soft_wrap=True)
         sys.exit(e.exit_code)
     except typer.Exit as e:
         sys.exit(e.exit_code)
