@@ -225,8 +225,6 @@ class GcodeParser:
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[GcodeLine]:
         handlers = self._handlers
-        path = self.path
-        lenient = self.lenient
         lineno = 0
         for raw in self._lines:
             lineno += 1

@@ -4,8 +4,8 @@ Compensating a file twice would invert the printer model twice.  The header says
 compensated, but a header is easy to lose (a user trims it, a slicer or uploader rewrites the start
 of the file), so the body carries the mark too, in two independent ways:
 
-* **explicit**: the writer emits :data:`SIGNATURE_LINE` before its first segment and then at least
-  every :data:`SIGNATURE_EVERY_LINES` body lines;
+* **explicit**: the writer emits :data:`SIGNATURE_LINE` before its first segment and then again at
+  the first run of segments after every :data:`SIGNATURE_EVERY_LINES` body lines;
 * **intrinsic**: the writer's segments have a fixed form (``G1 X.4f Y.4f Z.4f [E.5f] F.3f``: every
   axis, four decimals, a feed rate with three decimals) that slicers do not write.  A file in which
   at least :data:`INTRINSIC_MIN_LINES` lines, and at least half of its ``G1`` lines, have that form is
@@ -27,7 +27,7 @@ __all__ = ["SIGNATURE", "SIGNATURE_LINE", "SIGNATURE_EVERY_LINES", "INTRINSIC_MI
 SIGNATURE = "; ffcomp:sig"
 SIGNATURE_LINE = SIGNATURE + " compensated by ffcomp: do not compensate this file again\n"
 #: the writer repeats the mark at least this often (body lines)
-SIGNATURE_EVERY_LINES = 2000
+SIGNATURE_EVERY_LINES = 1000
 #: fewest writer-form segment lines that mark a file as compensated (with >= half of its G1 lines)
 INTRINSIC_MIN_LINES = 100
 

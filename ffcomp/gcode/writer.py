@@ -19,8 +19,8 @@ the compensated nozzle positions, and every other line kept in place.
   with ``errors="surrogateescape"``, as the parser reads).  Lines a lenient parse skipped are kept as
   ``; ffcomp (skipped):`` comments.
 * The body carries :data:`~ffcomp.gcode.signature.SIGNATURE_LINE` before its first segment and then
-  every :data:`~ffcomp.gcode.signature.SIGNATURE_EVERY_LINES` lines, so a compensated file is
-  recognised even without its header.
+  at the first run of segments after every :data:`~ffcomp.gcode.signature.SIGNATURE_EVERY_LINES`
+  lines, so a compensated file is recognised even without its header.
 * ``start_travel_mm_s`` set: the first motion is an ordinary travel to the first compensated point at
   that speed (the toolhead's position before an un-homed file is not known to the firmware's plan).
 """
@@ -185,9 +185,6 @@ class GcodeWriter:
             return
         if self.last_pt is None:
             self.last_pt, self.last_k, self.e_last_ref = xyz_mm[0].copy(), k0, float(e_mm[0])
-        if self.nlines >= self._next_sig:
-            self._w(SIGNATURE_LINE)
-            self._next_sig = self.nlines + SIGNATURE_EVERY_LINES
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()
         ends = np.concatenate([cut, [n]]).tolist()
@@ -201,6 +198,9 @@ class GcodeWriter:
         seg_base = []
         for r, run in enumerate(runs):
             mv, kind, ln = run.move, run.kind, run.lineno
+            if self.nlines >= self._next_sig:
+                self._w(SIGNATURE_LINE)
+                self._next_sig = self.nlines + SIGNATURE_EVERY_LINES
             self.flush_lines(ln)
             if self.start_travel_mm_s is not None:
                 self._start_travel(xyz_mm[0])
