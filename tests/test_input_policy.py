@@ -197,9 +197,14 @@ def test_pathological_input_is_a_clean_error_naming_the_line(tmp_path, profile, 
 
 
 def test_slow_but_sane_moves_still_pass(profile):
-    # 1 mm/s probing-like move over 20 mm (20 s), a 10-minute heat soak
-    recs = parse_text("G28\nG1 X0 Y0 Z20 F6000\nG1 Z0 F60\nG4 S600\nG4 P600000\n")
-    assert recs[2].op is not None and recs[4].op.seconds == 600.0
+    # 1 mm/s probing-like move over 20 mm (20 s), a 10-minute heat soak, a 2 um settling move at F0.4
+    recs = parse_text("G28\nG1 X0 Y0 Z20 F6000\nG1 Z0 F60\nG4 S600\nG4 P600000\nG1 X0.002 F0.4\n")
+    assert recs[2].op is not None and recs[4].op.seconds == 600.0 and recs[5].op is not None
+
+
+def test_compensated_output_passes_every_guard(compensated, profile):
+    plan = GcodePlan(str(compensated), profile)  # not lenient: every line of ffcomp's own output is valid
+    assert list(plan) and plan.parser.counts["skipped"] == 0 and plan.parser.warnings == 0
 
 
 def test_a_huge_line_is_an_error_with_bounded_memory(tmp_path, profile):

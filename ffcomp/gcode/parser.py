@@ -59,13 +59,17 @@ from .records import (
 )
 from .words import classic_words, extended_params, lex, number
 
-__all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text", "MIN_FEED_MM_S", "MAX_MOVE_S",
-           "MAX_DWELL_S", "MAX_LINE_CHARS"]
+__all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text", "MIN_FEED_MM_S", "MAX_SLOW_MOVE_S",
+           "MAX_MOVE_S", "MAX_DWELL_S", "MAX_LINE_CHARS"]
 
-#: slowest feed rate accepted for a move, mm/s (F6).  Slicers and start scripts never go below about
-#: 1 mm/s (F60, slow probing or purging); F0.001 or F1 are typos or a mm/s-for-mm/min mix-up, and at
-#: 1 kHz sampling they would make the compensation generate millions of samples for one line.
+#: slowest feed rate accepted for a move that lasts, mm/s (F6).  Slicers and start scripts never go
+#: below about 1 mm/s (F60, slow probing or purging); F0.001 or F1 are typos or a mm/s-for-mm/min
+#: mix-up, and at 1 kHz sampling they would make the compensation generate millions of samples for one
+#: line.  ffcomp's own output holds the toolhead still with micrometre moves at lower feed rates for
+#: fractions of a second, so the rule applies to moves lasting longer than :data:`MAX_SLOW_MOVE_S`.
 MIN_FEED_MM_S = 0.1
+#: a move slower than :data:`MIN_FEED_MM_S` is an error once it lasts longer than this, s
+MAX_SLOW_MOVE_S = 10.0
 #: longest single move accepted, s.  The slowest legitimate move, the full z travel of a tall delta
 #: (~1 m) at a careful 5 mm/s, takes 200 s; 15 min leaves a margin of 4 and bounds one line's samples
 #: (about 11 MB of temporary command file at 1 kHz).
@@ -464,10 +468,10 @@ class GcodeParser:
         if distance_mm <= 0.0:
             return
         v = self.speed
-        if v < MIN_FEED_MM_S:
+        if v < MIN_FEED_MM_S and distance_mm / v > MAX_SLOW_MOVE_S:
             _fail(f"feed rate {v * 60:.4g} mm/min ({v:.3g} mm/s) is below the minimum "
-                  f"{MIN_FEED_MM_S * 60:g} mm/min ({MIN_FEED_MM_S:g} mm/s): no printer moves this slowly "
-                  "(a typo, or mm/s written where G-code wants mm/min?)")
+                  f"{MIN_FEED_MM_S * 60:g} mm/min ({MIN_FEED_MM_S:g} mm/s) for a {distance_mm:.4g} mm move: "
+                  "no printer moves this slowly (a typo, or mm/s written where G-code wants mm/min?)")
         if distance_mm / v > MAX_MOVE_S:
             _fail(f"this move would last at least {distance_mm / v:.0f} s ({distance_mm:.4g} mm at "
                   f"{v * 60:.4g} mm/min), longer than the {MAX_MOVE_S:g} s allowed for one move")
