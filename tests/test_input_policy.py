@@ -314,3 +314,27 @@ def test_signature_scan_finds_marks_anywhere_and_not_in_slicer_files(tmp_path):
 
 def test_stop_record_is_exported():
     assert parse_text("M600\n")[0].op == Stop("M600")
+
+
+def test_profile_start_position_key(tmp_path):
+    import tomllib
+
+    from ffcomp.errors import ProfileError
+    from ffcomp.profile import profile_from_dict, profile_to_toml
+
+    base = tomllib.loads(profile_to_toml(default_profile()))
+    prof = profile_from_dict({**base, "start_position_mm": [0, 10, 20]})
+    assert prof.start_position_mm == (0.0, 10.0, 20.0)
+    assert profile_from_dict(tomllib.loads(profile_to_toml(prof))).start_position_mm == (0.0, 10.0, 20.0)
+    for bad in ([0, 0], [0, 0, "a"], [500, 0, 10], [0, 0, -5]):
+        with pytest.raises(ProfileError, match="start_position_mm"):
+            profile_from_dict({**base, "start_position_mm": bad})
+    src = tmp_path / "nohome.gcode"
+    src.write_text(NO_HOME)
+    out = tmp_path / "o.gcode"
+    s = compensate_file(str(src), str(out), prof, FAST)
+    assert s.start_mm == [0.0, 10.0, 20.0] and any("profile's start_position_mm" in n for n in s.notes)
+    assert np.allclose(_xyz(_motion(out.read_text())[0]), [0, 10, 20], atol=2e-4)
+    # --start overrides the profile
+    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False, start_mm=(1.0, 1.0, 5.0)))
+    assert s.start_mm == [1.0, 1.0, 5.0]

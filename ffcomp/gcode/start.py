@@ -4,7 +4,7 @@ A file that homes (G28) before its first move starts at home, whatever came befo
 users home inside a ``PRINT_START`` macro, though, so their sliced files move before any G28 and the
 toolhead then stands wherever the macro left it.  The plan needs a known start, so:
 
-* ``--start X,Y,Z`` (``start_mm``) says where the toolhead is;
+* ``--start X,Y,Z`` (``start_mm``) or the profile's ``start_position_mm`` says where the toolhead is;
 * otherwise the plan starts at the target of the file's first move: the first line is a travel from
   an unknown place, and the compensation can only begin once the toolhead is somewhere known;
 
@@ -31,7 +31,7 @@ class StartInfo:
 
     position_mm : (x, y, z, e) the plan starts at
     homed_first : the file homes before its first move (the start position does not matter)
-    origin : ``"home"``, ``"--start"`` or ``"first move"`` (where ``position_mm`` comes from)
+    origin : ``"home"``, ``"--start"``, ``"profile"`` or ``"first move"`` (where ``position_mm`` comes from)
     first_motion_line : line of the file's first move (None: no move)
     travel_mm_s : speed of the output's travel to the start (None when the file homes first)
     """
@@ -47,8 +47,10 @@ class StartInfo:
         if self.homed_first or self.first_motion_line is None:
             return None
         x, y, z = self.position_mm[:3]
-        how = ("as --start says" if self.origin == "--start" else
-               "the target of its first move (use --start X,Y,Z if the toolhead stands elsewhere)")
+        how = {"--start": "as --start says",
+               "profile": "as the profile's start_position_mm says (--start X,Y,Z overrides it)"}.get(
+            self.origin, "the target of its first move (use --start X,Y,Z or the profile's start_position_mm "
+            "if the toolhead stands elsewhere)")
         return (f"{path}:{self.first_motion_line}: the file moves before any G28: the plan assumes the toolhead "
                 f"starts at ({x:g}, {y:g}, {z:g}) mm, {how}; the output first travels there at "
                 f"{self.travel_mm_s * 60:.0f} mm/min")
@@ -76,11 +78,15 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
     src : path of the G-code file
     profile : PrinterProfile
     start_mm : (x, y, z), optional
-        Where the toolhead stands before the file (``--start``).
+        Where the toolhead stands before the file (``--start``); default: the profile's
+        ``start_position_mm``, if it has one.
     dialect : str, optional
         G-code dialect (default: the profile's planner).
     """
     home = (0.0, 0.0, profile.geometry.z_max_mm)
+    origin = "--start"
+    if start_mm is None and getattr(profile, "start_position_mm", None) is not None:
+        start_mm, origin = profile.start_position_mm, "profile"
     base = tuple(float(v) for v in start_mm) if start_mm is not None else (0.0, 0.0, 0.0)
     p = parse_gcode(src, lenient=True, dialect=dialect or profile.limits.planner, home_position_mm=home,
                     start_position_mm=(*base, 0.0), unknown_policy="pass")
@@ -90,10 +96,9 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
     homed = p.first_home_line is not None and (p.first_motion_line is None
                                                or p.first_home_line < p.first_motion_line)
     if homed or p.first_motion is None:
-        return StartInfo((*base, 0.0), True if homed else False, "home" if homed else "--start",
-                         p.first_motion_line, None)
+        return StartInfo((*base, 0.0), homed, "home" if homed else origin, p.first_motion_line, None)
     mv = p.first_motion
     travel = min(max(mv.speed_mm_s, MIN_START_TRAVEL_MM_S), profile.limits.max_velocity_mm_s)
     if start_mm is not None:
-        return StartInfo((*base, 0.0), False, "--start", p.first_motion_line, travel)
+        return StartInfo((*base, 0.0), False, origin, p.first_motion_line, travel)
     return StartInfo((mv.end[0], mv.end[1], mv.end[2], 0.0), False, "first move", p.first_motion_line, travel)
