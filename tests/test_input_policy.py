@@ -186,6 +186,7 @@ def test_table_classes_and_firmware_doc():
     ("G1 X100 Y0 F6.5", "longer than the"),
     ("G4 P7200000", "dwell of 7200 s"),
     ("G2 X10 Y0 I5 J0 F1", "below the minimum"),
+    ("G2 X10 Y0 I100000 J0 F3000", "arc of 6.283e"),
 ])
 def test_pathological_input_is_a_clean_error_naming_the_line(tmp_path, profile, line, what):
     src = tmp_path / "bad.gcode"

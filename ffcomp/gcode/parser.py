@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from ..errors import GcodeError
-from .arcs import offset_from_radius, plan_arc
+from .arcs import arc_travel, offset_from_radius, plan_arc
 from .commands import PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, classify
 from .records import (
     ArcMove,
@@ -60,7 +60,7 @@ from .records import (
 from .words import classic_words, extended_params, lex, number
 
 __all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text", "MIN_FEED_MM_S", "MAX_SLOW_MOVE_S",
-           "MAX_MOVE_S", "MAX_DWELL_S", "MAX_LINE_CHARS"]
+           "MAX_MOVE_S", "MAX_DWELL_S", "MAX_ARC_MM", "MAX_LINE_CHARS"]
 
 #: slowest feed rate accepted for a move that lasts, mm/s (F6).  Slicers and start scripts never go
 #: below about 1 mm/s (F60, slow probing or purging); F0.001 or F1 are typos or a mm/s-for-mm/min
@@ -78,6 +78,10 @@ MAX_MOVE_S = 900.0
 #: dwells belong in a macro (the compensation samples a dwell like a move: 1 h is ~43 MB and ~30 s of
 #: processing).
 MAX_DWELL_S = 3600.0
+#: longest arc accepted, mm.  G2/G3 make at most one turn, and a full circle of 1 m radius (beyond any
+#: delta's print radius) is 6.3 m; a longer arc comes from a bad centre or radius and would be split
+#: into one chord per millimetre.
+MAX_ARC_MM = 10000.0
 #: longest line accepted, characters (real files stay under a few kB; a longer "line" is binary data
 #: or a file without line breaks, and reading it whole would take unbounded memory).
 MAX_LINE_CHARS = 1 << 20
@@ -528,6 +532,10 @@ class GcodeParser:
             off = (w.get(ij[0], 0.0) * u, w.get(ij[1], 0.0) * u)
             if not (off[0] or off[1]):
                 _fail(f"G2/G3 needs a centre offset {ij[0]}/{ij[1]} or a radius R")
+        length = arc_travel(cur, target, off, clockwise, (a, b, h))[2]
+        if not length <= MAX_ARC_MM:
+            _fail(f"arc of {length:.4g} mm is longer than the {MAX_ARC_MM:g} mm allowed (a wrong centre or "
+                  "radius?)")
         points, center, radius, angle = plan_arc(cur, target, off, clockwise, (a, b, h),
                                                  self.arc_resolution_mm)
         e_absolute = not self._e_relative()
