@@ -197,6 +197,13 @@ def test_pathological_input_is_a_clean_error_naming_the_line(tmp_path, profile, 
     assert MIN_FEED_MM_S == 0.1 and MAX_MOVE_S == 900.0 and MAX_DWELL_S == 3600.0
 
 
+@pytest.mark.parametrize("fw, limit", [("klipper", "SET_VELOCITY_LIMIT ACCEL=0.0001"), ("marlin", "M204 S0.0001")])
+def test_a_move_the_limits_make_last_hours_is_an_error(profile, fw, limit):
+    text = f"G28\nG1 X0 Y0 Z5 F6000\n{limit}\nG1 X100 Y0\nG1 X20 Y0\n"
+    with pytest.raises(GcodeError, match=r"<string>:4: this move would last \d+ s"):
+        list(GcodePlan(text.splitlines(keepends=True), profile, firmware=fw, path="<string>"))
+
+
 def test_slow_but_sane_moves_still_pass(profile):
     # 1 mm/s probing-like move over 20 mm (20 s), a 10-minute heat soak, a 2 um settling move at F0.4
     recs = parse_text("G28\nG1 X0 Y0 Z20 F6000\nG1 Z0 F60\nG4 S600\nG4 P600000\nG1 X0.002 F0.4\n")

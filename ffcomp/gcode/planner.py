@@ -24,10 +24,11 @@ from __future__ import annotations
 
 from typing import Iterable, Iterator
 
+from ..errors import GcodeError
 from .klipper import KlipperPlanner
 from .marlin import MarlinPlanner
-from .moves import PlannedMove
-from .parser import GcodeParser, parse_gcode
+from .moves import DWELL, PlannedMove
+from .parser import MAX_MOVE_S, GcodeParser, parse_gcode
 from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
 
 __all__ = ["PLANNERS", "plan_moves", "plan_gcode", "GcodePlan", "make_planner"]
@@ -113,7 +114,11 @@ def plan_moves(records: Iterable[GcodeLine], profile, *, firmware: str | None = 
 
 
 def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
-    """Feed parsed lines to planner ``p``; yield its moves as they become final."""
+    """Feed parsed lines to planner ``p``; yield its moves as they become final.
+
+    A planned move lasting longer than :data:`~ffcomp.gcode.parser.MAX_MOVE_S` (e.g. under an absurd
+    ``SET_VELOCITY_LIMIT ACCEL=0.001``) is a :class:`GcodeError` naming its line.
+    """
     ops = _OPS
     for line in records:
         op = line.op
@@ -121,9 +126,21 @@ def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
             continue
         ops[type(op)](p, op, line)
         if p.out:
-            yield from p.take()
+            yield from _checked(p, p.take())
     p.finish()
-    yield from p.take()
+    yield from _checked(p, p.take())
+
+
+def _checked(p, moves: list[PlannedMove]) -> list[PlannedMove]:
+    if not moves or moves[-1].t_end_s - moves[0].t_start_s <= MAX_MOVE_S:  # moves follow without gaps
+        return moves
+    for m in moves:
+        if m.accel_t_s + m.cruise_t_s + m.decel_t_s > MAX_MOVE_S and m.kind != DWELL:
+            raise GcodeError(getattr(p, "path", "<gcode>"), m.lineno,
+                             f"this move would last {m.duration_s:.0f} s (over {m.distance_mm:.4g} mm at up to "
+                             f"{m.cruise_v_mm_s:.3g} mm/s, {m.accel_mm_s2:.3g} mm/s^2), longer than the "
+                             f"{MAX_MOVE_S:g} s allowed for one move")
+    return moves
 
 
 class GcodePlan:
