@@ -311,10 +311,13 @@ def test_double_compensation_is_refused_without_the_header(compensated, tmp_path
 
 
 def test_signature_scan_finds_marks_anywhere_and_not_in_slicer_files(tmp_path):
-    p = tmp_path / "a.gcode"
-    p.write_bytes(b"G1 X1\n" * 300000 + b"; ffcomp:sig compensated\n" + b"G1 X2\n")
+    p = tmp_path / "a.gcode"  # 5.4 MB: the scan reads it in two chunks
+    p.write_bytes(b"G1 X1\n" * 900000 + b"; ffcomp:sig compensated\n" + b"G1 X2")
     r = scan_gcode(str(p))
-    assert r.mark_line == 300001 and r.lines == 300002 and r.compensated
+    assert r.mark_line == 900001 and r.compensated and r.mark_text == "; ffcomp:sig compensated"
+    p.write_bytes(b"G1 X1\n" * 900000 + b"M117 ; ffcomp is not a mark here\nG1 X2")
+    r = scan_gcode(str(p))
+    assert not r.compensated and r.lines == 900001 and r.g1_lines == 900001
     for name in ("cube_prusa.gcode", "cube_cura.gcode", "stress_zigzag.gcode"):
         r = scan_gcode(str(ROOT / "samples" / "gcode" / name))
         assert not r.compensated and r.lines == (ROOT / "samples" / "gcode" / name).read_bytes().count(b"\n")
