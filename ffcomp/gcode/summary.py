@@ -28,7 +28,8 @@ class PlanSummary:
     path, planner : str
         Source and firmware planner used.
     lines, warnings, ignored_commands : int
-        Input lines, malformed lines skipped in lenient mode, limit commands the firmware ignores.
+        Input lines, warnings (malformed lines skipped in lenient mode, unknown commands), limit commands
+        the firmware ignores.
     moves, extrude_only_moves, dwells : int
         Planned XYZ moves (arc chords counted singly), extruder-only moves, dwells.
     duration_s, dwell_time_s : float
