@@ -14,7 +14,8 @@ command word therefore belongs to one class (:data:`TABLE`):
     progress, object labels, pressure/linear advance, firmware-retraction *settings*): copied verbatim.
 ``stop``
     Stops, moves or re-references the machine at an unknown time (filament change, pause, tool change,
-    probing and bed levelling, nozzle cleaning, parking, firmware retraction G10/G11, homing variants):
+    heater waits, probing and bed levelling, nozzle cleaning, parking, firmware retraction G10/G11,
+    homing variants):
     the planner brings the toolhead to rest there, the compensation stream ends at rest (as at a
     homing) and starts again from rest after the line, so the command never runs mid-motion.
 
@@ -51,10 +52,9 @@ TABLE: dict[str, str] = {
     **_words(STATE, "G17 G18 G19 G20 G21 G90 G91 G92 M82 M83 M220 M221 M201 M203 M204 M205 "
                     "SET_VELOCITY_LIMIT SET_GCODE_OFFSET"),
     **_words(PASS,
-             # temperatures and waits for them (the toolhead stands still only if the heater is away
-             # from its target, as Klipper does), fans, lights, sounds
-             "M104 M109 M140 M190 M141 M191 M105 M106 M107 M116 M155 M150 M300 M42 "
-             "SET_HEATER_TEMPERATURE TEMPERATURE_WAIT SET_FAN_SPEED SET_LED SET_PIN "
+             # temperatures (without waiting), fans, lights, sounds
+             "M104 M140 M141 M105 M106 M107 M155 M150 M300 M42 "
+             "SET_HEATER_TEMPERATURE SET_FAN_SPEED SET_LED SET_PIN "
              # messages, progress, reports, host protocol
              "M73 M75 M76 M77 M78 M110 M111 M112 M113 M114 M115 M117 M118 M119 M120 M121 M21 M22 M23 "
              "M24 M26 M27 M28 M29 M30 M31 M32 M33 M34 M928 RESPOND M117.1 SET_PRINT_STATS_INFO "
@@ -68,6 +68,9 @@ TABLE: dict[str, str] = {
              "M17 M80 M81 M85 M500 M501 M502 M503 M504 M906 M907 M913 M914 M862.1 M862.2 M862.3 M862.4 "
              "M862.5 M862.6 M115.1 SAVE_GCODE_STATE SAVE_VARIABLE"),
     **_words(STOP,
+             # heater waits: the firmware stops the toolhead while the heater is away from its target
+             # (Klipper flushes the lookahead then), so the command must not be mid-motion there
+             "M109 M190 M191 M116 TEMPERATURE_WAIT "
              # pauses and user interaction
              "M0 M1 M25 M125 M226 M600 M601 M602 M603 M701 M702 M876 PAUSE RESUME CANCEL_PRINT "
              # tool changes are added by classify(): T0, T1, ...
