@@ -409,11 +409,16 @@ class KlipperPlanner:
 
     def sync(self, reason: str, lineno: int) -> None:
         if reason in ("M84", "M18"):
+            self.get_last_move_time()  # (the dwell's own flush, made first to report the rest)
+            if self.on_stop is not None:
+                self.on_stop(self.print_time, lineno)
             self.dwell(MOTOR_OFF_DWELL_S, lineno)
             self.get_last_move_time()
             self.dwell(MOTOR_OFF_DWELL_S, lineno)
         else:
             self._flush_lookahead()
+            if self.on_stop is not None:
+                self.on_stop(self.print_time, lineno)
 
     def stop(self, command: str, lineno: int) -> None:
         """A command that stops or moves the machine on its own: flush to rest first (as M400)."""

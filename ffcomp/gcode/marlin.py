@@ -297,6 +297,8 @@ class MarlinPlanner:
 
     def sync(self, reason: str, lineno: int) -> None:
         self._drain()
+        if self.on_stop is not None:
+            self.on_stop(self.print_time, lineno)
 
     def stop(self, command: str, lineno: int) -> None:
         """A command that stops or moves the machine on its own: drain the buffer first (as M400)."""

@@ -9,7 +9,8 @@ The firmware variants live in :data:`PLANNERS` (name -> planner class); the prof
 
 A stop (:class:`~ffcomp.gcode.records.Stop`: M600, PAUSE, T1, G29, G10, an unknown macro...) flushes the
 lookahead like M400, so the toolhead is at rest when the firmware runs the command; the planner counts
-it (``stops``) and reports its print time to ``on_stop(t_s, lineno)`` if that is set.
+it (``stops``) and reports its print time to ``on_stop(t_s, lineno)`` if that is set.  ``sync`` (M400,
+M18/M84) reports its rest to ``on_stop`` too: the firmware waits there for the queue to drain.
 
 Planning streams: the lookahead queue holds only the moves that can still change (Klipper: about
 0.25-2 s of motion; Marlin: the block buffer), so memory does not grow with the file.

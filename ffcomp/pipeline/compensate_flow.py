@@ -319,10 +319,10 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     (index -> PlannedMove) as they go by.  A homing (a jump of the carriages) ends one compensation
     stream and starts the next; each stream begins with ``pre_s`` and ends with ``post_s`` of rest,
     which the output keeps (so the command can pre-actuate the first move and settle after the last).
-    A stop command (M600, PAUSE, T1, G29, an unknown macro...: the planner brings the toolhead to rest
-    there) ends a stream the same way, so the command stands still at the plan's rest position when
-    the firmware runs it, and the next stream starts from rest after it.  A file without XYZ motion
-    is an error (nothing to compensate).
+    A stop command (M600, PAUSE, T1, G29, M109, an unknown macro...: the planner brings the toolhead to
+    rest there) or a sync (M400, M84) ends a stream the same way, so the command stands still at the
+    plan's rest position when the firmware runs it, and the next stream starts from rest after it.  A
+    file without XYZ motion is an error (nothing to compensate).
     """
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
