@@ -349,3 +349,15 @@ def test_profile_start_position_key(tmp_path):
     # --start overrides the profile
     s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False, start_mm=(1.0, 1.0, 5.0)))
     assert s.start_mm == [1.0, 1.0, 5.0]
+
+
+def test_first_motion_is_found_past_feed_only_lines_and_arcs(tmp_path, profile):
+    from ffcomp.gcode.start import resolve_start
+
+    src = tmp_path / "f.gcode"
+    src.write_text("G1 F3000\nG1 X0 Y0 F1200\nG1 X5 Y5 Z2\n")  # G1 X0 Y0 does not move (from the origin)
+    st = resolve_start(str(src), profile)
+    assert st.position_mm[:3] == (5.0, 5.0, 2.0) and st.first_motion_line == 3 and st.travel_mm_s == 20.0
+    src.write_text("G90\nG2 X10 Y0 I5 J0 F3000\n")  # an arc keeps the start (its centre is relative)
+    st = resolve_start(str(src), profile)
+    assert st.position_mm[:3] == (0.0, 0.0, 0.0) and st.origin == "default" and st.warning("f") is not None

@@ -168,8 +168,8 @@ class GcodeParser:
         commands, whatever the policy made of them), ``skipped`` (malformed lines skipped leniently).
     first_motion_line, first_home_line : int or None
         Line numbers of the first move (G0-G3) and of the first G28.
-    first_motion : LinearMove or None
-        The first linear move (its end is where the file first sends the toolhead).
+    first_motion : LinearMove, ArcMove or None
+        The first move (a linear move's end is where the file first sends the toolhead).
     """
 
     def __init__(
@@ -195,7 +195,7 @@ class GcodeParser:
         self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0}
         self.first_motion_line: int | None = None
         self.first_home_line: int | None = None
-        self.first_motion: LinearMove | None = None
+        self.first_motion: LinearMove | ArcMove | None = None
         self._lines = lines
         self.path = str(path)
         self.lenient = lenient
@@ -283,9 +283,7 @@ class GcodeParser:
             yield GcodeLine(lineno, raw, cmd, op)
 
     def _first_motion(self, lineno: int, op) -> None:
-        if isinstance(op, ArcMove):
-            op = op.segments[0] if op.segments else None
-        if isinstance(op, LinearMove) and op.start[:3] != op.end[:3]:
+        if isinstance(op, ArcMove) or (isinstance(op, LinearMove) and op.start[:3] != op.end[:3]):
             self.first_motion_line = lineno
             self.first_motion = op
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .parser import parse_gcode
+from .records import ArcMove
 
 __all__ = ["MIN_START_TRAVEL_MM_S", "StartInfo", "resolve_start", "parse_start"]
 
@@ -31,7 +32,8 @@ class StartInfo:
 
     position_mm : (x, y, z, e) the plan starts at
     homed_first : the file homes before its first move (the start position does not matter)
-    origin : ``"home"``, ``"--start"``, ``"profile"`` or ``"first move"`` (where ``position_mm`` comes from)
+    origin : ``"home"``, ``"--start"``, ``"profile"``, ``"first move"`` or ``"default"`` (the origin, when
+        the first move is an arc: its centre is given relative to where it starts)
     first_motion_line : line of the file's first move (None: no move)
     travel_mm_s : speed of the output's travel to the start (None when the file homes first)
     """
@@ -48,7 +50,9 @@ class StartInfo:
             return None
         x, y, z = self.position_mm[:3]
         how = {"--start": "as --start says",
-               "profile": "as the profile's start_position_mm says (--start X,Y,Z overrides it)"}.get(
+               "profile": "as the profile's start_position_mm says (--start X,Y,Z overrides it)",
+               "default": "as its first move is an arc from there (use --start X,Y,Z if the toolhead stands "
+                          "elsewhere)"}.get(
             self.origin, "the target of its first move (use --start X,Y,Z or the profile's start_position_mm "
             "if the toolhead stands elsewhere)")
         return (f"{path}:{self.first_motion_line}: the file moves before any G28: the plan assumes the toolhead "
@@ -98,7 +102,10 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
     if homed or p.first_motion is None:
         return StartInfo((*base, 0.0), homed, "home" if homed else origin, p.first_motion_line, None)
     mv = p.first_motion
-    travel = min(max(mv.speed_mm_s, MIN_START_TRAVEL_MM_S), profile.limits.max_velocity_mm_s)
-    if start_mm is not None:
-        return StartInfo((*base, 0.0), False, origin, p.first_motion_line, travel)
+    arc = isinstance(mv, ArcMove)
+    speed = mv.segments[0].speed_mm_s if arc else mv.speed_mm_s
+    travel = min(max(speed, MIN_START_TRAVEL_MM_S), profile.limits.max_velocity_mm_s)
+    if start_mm is not None or arc:  # an arc's centre is relative to its start: keep the start as it is
+        return StartInfo((*base, 0.0), False, origin if start_mm is not None else "default",
+                         p.first_motion_line, travel)
     return StartInfo((mv.end[0], mv.end[1], mv.end[2], 0.0), False, "first move", p.first_motion_line, travel)
