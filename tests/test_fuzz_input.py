@@ -27,7 +27,7 @@ _num = st.one_of(
     st.sampled_from(["nan", "inf", "-inf", "1e309", "", ".", "-", "1O", "0x10", "1e-9", "0.001"]),
 )
 _word = st.tuples(st.sampled_from(list("XYZEFIJKRPS") + ["x", "Q", "*", "="]), _num).map(lambda t: t[0] + t[1])
-_cmd = st.sampled_from(["G0", "G1", "G1", "G1", "G2", "G3", "G4", "G92", "G90", "G91", "M82", "M83", "G28",
+_cmd = st.sampled_from(["G0", "G1", "G1", "G1", "G2", "G3", "G4", "G92", "G90", "G91", "M82", "M83", "G28", "G20",
                         "M104", "M106", "M117", "M220", "M221", "M204", "M600", "T1", "G10", "G29", "M400",
                         "SET_VELOCITY_LIMIT", "MY_MACRO", "N1", "g1", ""])
 _gcode_line = st.builds(lambda c, ws, tail: (" ".join([c, *ws]) + tail).encode(),
@@ -43,8 +43,8 @@ def _file(lines: list[bytes]) -> bytes:
 
 
 @settings(max_examples=150, deadline=None)
-@given(st.lists(_line, max_size=12), st.booleans())
-def test_parser_and_planner_raise_only_ffcomp_errors(lines, lenient):
+@given(st.lists(_line, max_size=12), st.booleans(), st.sampled_from(["klipper", "marlin"]))
+def test_parser_and_planner_raise_only_ffcomp_errors(lines, lenient, firmware):
     data = _file(lines)
     with tempfile.TemporaryDirectory() as d:
         p = os.path.join(d, "f.gcode")
@@ -54,7 +54,7 @@ def test_parser_and_planner_raise_only_ffcomp_errors(lines, lenient):
         recs = list(parse_gcode(p, lenient=True))
         assert "".join(r.raw for r in recs).encode("utf-8", "surrogateescape") == data
         try:
-            list(GcodePlan(p, PROFILE, lenient=lenient))
+            list(GcodePlan(p, PROFILE, lenient=lenient, firmware=firmware))
         except FfcompError as e:
             assert str(e)
 

@@ -121,7 +121,10 @@ class KlipperDelta:
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
             above = end_z - self.limit_z
-            allowed = self.radius - math.sqrt(self.min_arm2 - (self.min_arm_length - above) ** 2)
+            d2 = self.min_arm2 - (self.min_arm_length - above) ** 2
+            if d2 < 0.0:  # far above the top of the towers (Klipper's sqrt would raise): unreachable
+                return "Move out of range: %.3f %.3f %.3f [%.3f]" % tuple(end)
+            allowed = self.radius - math.sqrt(d2)
             limit_xy2 = min(limit_xy2, allowed ** 2)
         if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
             hp = self.home_position
