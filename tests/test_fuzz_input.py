@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from pathlib import Path
 
 from cli_util import run
 from hypothesis import HealthCheck, given, settings
@@ -20,6 +21,7 @@ from ffcomp.gcode.parser import parse_gcode
 from ffcomp.profile import default_profile
 
 PROFILE = default_profile()
+OTHER = str(Path(__file__).resolve().parents[1] / "samples" / "profiles" / "other_delta.toml")
 
 _num = st.one_of(
     st.floats(-150, 150, allow_nan=False).map(lambda v: f"{v:.3f}"),
@@ -64,14 +66,17 @@ _SUFFIX = [b"G1 X10 Y10 E0.5", b"G1 X0 Y10 E0.5"]
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.lists(st.one_of(_gcode_line, _comment, _comment, _byte_line), min_size=1, max_size=4), st.booleans())
-def test_cli_succeeds_with_lines_intact_or_fails_cleanly(capsys, middle, lenient):
+@given(st.lists(st.one_of(_gcode_line, _comment, _comment, _byte_line), min_size=1, max_size=4), st.booleans(),
+       st.booleans())
+def test_cli_succeeds_with_lines_intact_or_fails_cleanly(capsys, middle, lenient, other_profile):
     data = _file(_PREFIX + middle + _SUFFIX)
     with tempfile.TemporaryDirectory() as d:
         src, out = os.path.join(d, "in.gcode"), os.path.join(d, "out.gcode")
         with open(src, "wb") as f:
             f.write(data)
         args = [src, "-o", out, "--no-progress", "--no-predict", "--no-self-check"]
+        if other_profile:
+            args += ["--profile", OTHER]
         code, _, err = run(capsys, *(args + (["--lenient"] if lenient else [])))
         assert "Traceback" not in err
         if code == 0:
