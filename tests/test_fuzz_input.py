@@ -54,7 +54,8 @@ def test_parser_and_planner_raise_only_ffcomp_errors(lines, lenient, firmware):
             f.write(data)
         # the records restore the file byte for byte
         recs = list(parse_gcode(p, lenient=True))
-        assert "".join(r.raw for r in recs).encode("utf-8", "surrogateescape") == data
+        bom = b"\xef\xbb\xbf"  # a byte-order mark at the start is dropped (it is no part of a command)
+        assert "".join(r.raw for r in recs).encode("utf-8", "surrogateescape") == data.removeprefix(bom)
         try:
             list(GcodePlan(p, PROFILE, lenient=lenient, firmware=firmware))
         except FfcompError as e:

@@ -361,3 +361,13 @@ def test_first_motion_is_found_past_feed_only_lines_and_arcs(tmp_path, profile):
     src.write_text("G90\nG2 X10 Y0 I5 J0 F3000\n")  # an arc keeps the start (its centre is relative)
     st = resolve_start(str(src), profile)
     assert st.position_mm[:3] == (0.0, 0.0, 0.0) and st.origin == "default" and st.warning("f") is not None
+
+
+def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path, profile):
+    src = tmp_path / "bom.gcode"
+    src.write_bytes(b"\xef\xbb\xbfG28\nG1 X0 Y0 Z5 F6000\nG1 X10 Y0 Z5\n")
+    recs = list(GcodePlan(str(src), profile).parser)
+    assert recs[0].command == "G28" and recs[0].raw == "G28\n"
+    out = tmp_path / "o.gcode"
+    s = compensate_file(str(src), str(out), profile, FAST)
+    assert s.homed_first and s.warnings == 0 and b"\xef\xbb\xbf" not in out.read_bytes()

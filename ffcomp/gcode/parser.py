@@ -32,7 +32,8 @@ Guards against pathological input (each names the file and line): a feed rate be
 :data:`MIN_FEED_MM_S`, a single move that would last longer than :data:`MAX_MOVE_S`, a dwell longer than
 :data:`MAX_DWELL_S`, a line longer than :data:`MAX_LINE_CHARS`, and bytes that are not UTF-8 inside a
 command (in comments and pass-through lines they are kept as they are: files are read with
-``errors="surrogateescape"``, so writing with the same handler restores the bytes).
+``errors="surrogateescape"``, so writing with the same handler restores the bytes).  A UTF-8
+byte-order mark at the start of the file is dropped.
 """
 
 from __future__ import annotations
@@ -234,7 +235,7 @@ class GcodeParser:
     def __iter__(self) -> Iterator[GcodeLine]:
         handlers = self._handlers
         lineno = 0
-        for raw in self._lines:
+        for raw in _without_bom(self._lines):
             lineno += 1
             self.lines_read = lineno
             # fast path: plain "G1 ..." / "G0 ..." lines with no comment, checksum or compact words
@@ -765,6 +766,17 @@ class GcodeParser:
             self.base_position[i] += delta
             self.homing_position[i] = off
         return ModeChange("gcode_offset", tuple(self.homing_position))
+
+
+def _without_bom(lines: Iterable[str]) -> Iterator[str]:
+    """``lines`` without a UTF-8 byte-order mark at the start of the first: it marks the encoding, and a
+    firmware would read it as part of the first command (``\ufeffG28`` is no G28)."""
+    it = iter(lines)
+    first = next(it, None)
+    if first is None:
+        return
+    yield first[1:] if first.startswith("\ufeff") else first
+    yield from it
 
 
 def _has_undecodable(text: str) -> bool:
