@@ -371,3 +371,10 @@ def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path, profile):
     out = tmp_path / "o.gcode"
     s = compensate_file(str(src), str(out), profile, FAST)
     assert s.homed_first and s.warnings == 0 and b"\xef\xbb\xbf" not in out.read_bytes()
+
+
+def test_hook_shows_the_warnings(tmp_path, capsys):
+    src = tmp_path / "nohome.gcode"
+    src.write_text(NO_HOME + "MY_MACRO\nG1 X0 Y0 E1\n")
+    code, _, err = run(capsys, "hook", src)
+    assert code == 0 and "moves before any G28" in err and "MY_MACRO" in err
