@@ -378,3 +378,9 @@ def test_hook_shows_the_warnings(tmp_path, capsys):
     src.write_text(NO_HOME + "MY_MACRO\nG1 X0 Y0 E1\n")
     code, _, err = run(capsys, "hook", src)
     assert code == 0 and "moves before any G28" in err and "MY_MACRO" in err
+
+
+def test_a_refused_slow_line_changes_no_state():
+    recs = parse_text("G1 X0 Y0 Z5 F6000\nG1 X50 F0.001\nG1 X10\n", lenient=True)
+    assert recs[1].op is None and recs[1].error and recs[2].op.speed_mm_s == 100.0
+    assert recs[2].op.start[0] == 0.0

@@ -455,6 +455,7 @@ class GcodeParser:
                 e += v
             else:
                 e = v + bp[3]
+        old_speed = self.speed
         if vf is not None:
             self._set_speed(vf)
         if vx is None and vy is None and vz is None and ve is None:
@@ -462,7 +463,11 @@ class GcodeParser:
             return ModeChange("feedrate_mm_s", self.speed)
         if self.speed < _SLOW_CHECK_MM_S:
             d = math.sqrt((x - x0) ** 2 + (y - y0) ** 2 + (z - z0) ** 2) or abs(e - e0)
-            self._check_slow(d)
+            try:
+                self._check_slow(d)
+            except _LineError:
+                self.speed = old_speed  # a refused line changes no state
+                raise
         self.last_position = [x, y, z, e]
         return LinearMove((x0, y0, z0, e0), (x, y, z, e), self.speed, rapid)
 
