@@ -102,6 +102,7 @@ def test_after_g28_the_start_is_home_and_output_unchanged(tmp_path, profile):
     sa = compensate_file(str(src), str(a), profile, FAST)
     compensate_file(str(src), str(b), profile, CompensateOptions(predict=False, start_mm=(5.0, 5.0, 50.0)))
     assert sa.homed_first is True and sa.warnings == 0 and a.read_text() == b.read_text()
+    assert sa.start_mm == [0.0, 0.0, profile.geometry.z_max_mm]
     assert "travel to the start" not in a.read_text()
     first = _motion(a.read_text())[0]
     assert abs(_xyz(first)[2] - profile.geometry.z_max_mm) < 0.1  # starts from home

@@ -99,8 +99,10 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
             break
     homed = p.first_home_line is not None and (p.first_motion_line is None
                                                or p.first_home_line < p.first_motion_line)
-    if homed or p.first_motion is None:
-        return StartInfo((*base, 0.0), homed, "home" if homed else origin, p.first_motion_line, None)
+    if homed:
+        return StartInfo((*home, 0.0), True, "home", p.first_motion_line, None)
+    if p.first_motion is None:
+        return StartInfo((*base, 0.0), False, origin, None, None)
     mv = p.first_motion
     arc = isinstance(mv, ArcMove)
     speed = mv.segments[0].speed_mm_s if arc else mv.speed_mm_s
