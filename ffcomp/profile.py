@@ -155,6 +155,9 @@ class PrinterProfile:
         :mod:`ffcomp.model.effects`.
     source : str or None
         File the profile was loaded from (for error messages).
+    start_position_mm : (x, y, z) or None
+        Optional top-level key: where the toolhead stands when a file that moves before any G28
+        starts (e.g. where the printer's ``PRINT_START`` macro leaves it); ``--start`` overrides it.
     """
 
     name: str = "unnamed delta"
@@ -163,6 +166,7 @@ class PrinterProfile:
     dynamics: Dynamics = field(default_factory=Dynamics)
     effects: tuple = ()
     source: str | None = None
+    start_position_mm: tuple | None = None
 
     def geometry_si(self) -> DeltaGeometry:
         return self.geometry.to_si()
@@ -183,6 +187,8 @@ class PrinterProfile:
                     d[sec][k] = list(v) if len(set(v)) > 1 else v[0]
         if self.effects:
             d["effects"] = [dict(e) for e in self.effects]
+        if self.start_position_mm is not None:
+            d["start_position_mm"] = list(self.start_position_mm)
         return d
 
 
@@ -360,11 +366,27 @@ def _check_limits(lim: Limits, source) -> None:
                            f"exceeds max_accel_mm_s2 = {lim.max_accel_mm_s2}", source)
 
 
+def _start_position(v, g: Geometry, source) -> tuple | None:
+    """The optional ``start_position_mm = [x, y, z]``: three numbers inside the print volume."""
+    if v is None:
+        return None
+    if not isinstance(v, (list, tuple)) or len(v) != 3:
+        raise ProfileError("start_position_mm", v, "expected a list of 3 numbers [x, y, z] in mm", source)
+    for i, c in enumerate(v):
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not math.isfinite(c):
+            raise ProfileError(f"start_position_mm[{i}]", c, "expected a finite number", source)
+    x, y, z = (float(c) for c in v)
+    if math.hypot(x, y) > g.print_radius_mm or not g.z_min_mm <= z <= g.z_max_mm:
+        raise ProfileError("start_position_mm", v, f"outside the print volume (radius {g.print_radius_mm:g} mm, "
+                           f"z {g.z_min_mm:g}..{g.z_max_mm:g} mm)", source)
+    return (x, y, z)
+
+
 def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
     """Validate a parsed TOML document and build a :class:`PrinterProfile`."""
     if not isinstance(raw, dict):
         raise ProfileError("<root>", raw, "expected a table", source)
-    allowed = {"name", "geometry", "limits", "dynamics", "effects", "ffcomp_profile"}
+    allowed = {"name", "geometry", "limits", "dynamics", "effects", "ffcomp_profile", "start_position_mm"}
     for key in raw:
         if key not in allowed:
             raise ProfileError(key, raw[key], f"unknown top-level key (known: {', '.join(sorted(allowed))})",
@@ -388,8 +410,9 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
     for i, e in enumerate(effects):
         if not isinstance(e.get("name"), str):
             raise ProfileError(f"effects[{i}].name", e.get("name"), "each effect needs a string name", source)
+    start = _start_position(raw.get("start_position_mm"), geometry, source)
     prof = PrinterProfile(name=name, geometry=geometry, limits=limits, dynamics=dynamics,
-                          effects=tuple(dict(e) for e in effects), source=source)
+                          effects=tuple(dict(e) for e in effects), source=source, start_position_mm=start)
     if effects:
         from .model.effects import validate_effects  # effects know their own parameters
 

@@ -17,6 +17,7 @@ from ffcomp.gcode import (
     LimitsChange,
     LinearMove,
     ModeChange,
+    Stop,
     Sync,
     parse_text,
 )
@@ -68,7 +69,10 @@ def test_every_line_yields_one_record_in_order_and_raw_text_round_trips():
     assert by_cmd[8].command == "G1" and isinstance(by_cmd[8].op, LinearMove)
     assert by_cmd[9].command == "M117" and by_cmd[9].op is None  # '*' without N is not a checksum
     assert by_cmd[11].raw.endswith("\r\n") and by_cmd[11].text == "G1 X2 Y2 E0.2"
-    assert by_cmd[15].command == "MY_MACRO" and by_cmd[15].op is None
+    # T0 (tool change) is a stop; an unknown macro is a stop by default (policy), with a warning
+    assert by_cmd[10].command == "T0" and by_cmd[10].op == Stop("T0")
+    assert by_cmd[15].command == "MY_MACRO" and by_cmd[15].op == Stop("MY_MACRO", unknown=True)
+    assert parse_text(SLICER_TEXT, unknown_policy="pass")[14].op is None
 
 
 def test_streaming_consumes_one_line_per_record():

@@ -35,7 +35,14 @@ def compensate_cmd(
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,
     predict: Annotated[bool, typer.Option("--predict/--no-predict", help="Predict the residual vibration "
                                           "before/after with the model (summary).")] = True,
-    lenient: Annotated[bool, typer.Option(help="Count malformed G-code lines as warnings.")] = False,
+    lenient: Annotated[bool, typer.Option(help="Skip malformed G-code lines (kept as '; ffcomp (skipped):' "
+                                          "comments) and count them as warnings.")] = False,
+    start: Annotated[Optional[str], typer.Option("--start", help="X,Y,Z (mm): where the toolhead stands before "
+                                                 "a file that moves before any G28 (default: the target of "
+                                                 "its first move).")] = None,
+    unknown_commands: Annotated[str, typer.Option("--unknown-commands", help="Unknown macros and G codes: stop "
+                                                  "(the toolhead rests before them; default), pass (copied "
+                                                  "as they are) or refuse (an error).")] = "stop",
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
@@ -55,6 +62,14 @@ def compensate_cmd(
         raise typer.BadParameter(f"--z-mode must be keep or hold, got {z_mode!r}")
     if tol_um <= 0:
         raise typer.BadParameter(f"--tol-um must be > 0, got {tol_um}")
+    if unknown_commands not in ("stop", "pass", "refuse"):
+        raise typer.BadParameter(f"--unknown-commands must be stop, pass or refuse, got {unknown_commands!r}")
+    from ..gcode.start import parse_start
+
+    try:
+        start_mm = None if start is None else parse_start(start)
+    except ValueError as e:
+        raise typer.BadParameter(str(e)) from None
     prof = load_profile_opt(profile)
     out = str(source) if output is None else (None if output == "-" else output)
     if fmt != "gcode":
@@ -67,7 +82,8 @@ def compensate_cmd(
         return
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
-                             pin_holds=pin_holds, inverse=InverseConfig(method=method))
+                             pin_holds=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
+                             unknown_policy=unknown_commands)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
         with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),
@@ -78,6 +94,11 @@ def compensate_cmd(
         summ = compensate_file(str(source), out, prof, opts, progress=PlainProgress(source.name))
     else:
         summ = compensate_file(str(source), out, prof, opts)
+    if not json:
+        from rich.markup import escape
+
+        for note in summ.notes:
+            err_console.print(f"[yellow]warning:[/] {escape(str(note))}", highlight=False, soft_wrap=True)
     _report(summ.to_dict(), json, to_stderr=(out is None))
 
 

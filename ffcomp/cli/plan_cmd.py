@@ -115,7 +115,10 @@ def plan(
         return
     t = Table(title=f"{s.path}", show_header=False, title_justify="left")
     t.add_row("firmware planner", s.planner)
-    t.add_row("lines", f"{s.lines:,}" + (f"  ({s.warnings} malformed, skipped)" if s.warnings else ""))
+    cc = s.command_counts
+    t.add_row("lines", f"{s.lines:,}" + (f"  ({cc['skipped']} malformed, skipped)" if cc.get("skipped") else ""))
+    if cc.get("stop") or cc.get("unknown"):
+        t.add_row("stops", f"{cc.get('stop', 0)} (M600, T<n>, G29, ...), {cc.get('unknown', 0)} unknown commands")
     t.add_row("moves", f"{s.moves:,} XYZ, {s.extrude_only_moves:,} extruder-only, {s.dwells:,} dwells")
     t.add_row("duration", f"{_fmt_time(s.duration_s)}  ({s.duration_s:.3f} s, dwells {s.dwell_time_s:.3f} s)")
     t.add_row("peak speed", f"{s.peak_speed_mm_s:.1f} mm/s")

@@ -51,6 +51,27 @@ def offset_from_radius(p1: tuple, p2: tuple, r: float, clockwise: bool) -> tuple
     return dx + sx / half * e * h, dy + sy / half * e * h
 
 
+def arc_travel(current: tuple, target: tuple, offset: tuple, clockwise: bool,
+               axes: tuple[int, int, int]) -> tuple[float, float, float]:
+    """``(angular_travel_rad, radius_mm, length_mm)`` of an arc (the numbers :func:`plan_arc` splits),
+    without making its points: a caller can refuse an absurd arc before it costs memory."""
+    a, b, h = axes
+    r_p, r_q = -offset[0], -offset[1]
+    center_p, center_q = current[a] - r_p, current[b] - r_q
+    rt_alpha, rt_beta = target[a] - center_p, target[b] - center_q
+    angular_travel = math.atan2(r_p * rt_beta - r_q * rt_alpha, r_p * rt_alpha + r_q * rt_beta)
+    if angular_travel < 0.0:
+        angular_travel += 2.0 * math.pi
+    if clockwise:
+        angular_travel -= 2.0 * math.pi
+    if angular_travel == 0.0 and current[a] == target[a] and current[b] == target[b]:
+        angular_travel = 2.0 * math.pi  # full circle
+    linear_travel = target[h] - current[h]
+    radius = math.hypot(r_p, r_q)
+    flat_mm = radius * angular_travel
+    return angular_travel, radius, (math.hypot(flat_mm, linear_travel) if linear_travel else math.fabs(flat_mm))
+
+
 def plan_arc(
     current: tuple,
     target: tuple,
@@ -84,23 +105,10 @@ def plan_arc(
         Signed, rad (negative clockwise).
     """
     a, b, h = axes
-    r_p = -offset[0]
-    r_q = -offset[1]
-    center_p = current[a] - r_p
-    center_q = current[b] - r_q
-    rt_alpha = target[a] - center_p
-    rt_beta = target[b] - center_q
-    angular_travel = math.atan2(r_p * rt_beta - r_q * rt_alpha, r_p * rt_alpha + r_q * rt_beta)
-    if angular_travel < 0.0:
-        angular_travel += 2.0 * math.pi
-    if clockwise:
-        angular_travel -= 2.0 * math.pi
-    if angular_travel == 0.0 and current[a] == target[a] and current[b] == target[b]:
-        angular_travel = 2.0 * math.pi  # full circle
+    center_p = current[a] + offset[0]
+    center_q = current[b] + offset[1]
+    angular_travel, radius, mm_of_travel = arc_travel(current, target, offset, clockwise, axes)
     linear_travel = target[h] - current[h]
-    radius = math.hypot(r_p, r_q)
-    flat_mm = radius * angular_travel
-    mm_of_travel = math.hypot(flat_mm, linear_travel) if linear_travel else math.fabs(flat_mm)
     segments = max(1.0, math.floor(mm_of_travel / resolution_mm))
     theta_per_segment = angular_travel / segments
     linear_per_segment = linear_travel / segments

@@ -121,7 +121,10 @@ class KlipperDelta:
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
             above = end_z - self.limit_z
-            allowed = self.radius - math.sqrt(self.min_arm2 - (self.min_arm_length - above) ** 2)
+            d2 = self.min_arm2 - (self.min_arm_length - above) ** 2
+            if d2 < 0.0:  # far above the top of the towers (Klipper's sqrt would raise): unreachable
+                return "Move out of range: %.3f %.3f %.3f [%.3f]" % tuple(end)
+            allowed = self.radius - math.sqrt(d2)
             limit_xy2 = min(limit_xy2, allowed ** 2)
         if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
             hp = self.home_position
@@ -178,6 +181,8 @@ class KlipperPlanner:
         self.kin = KlipperDelta(profile, self.max_velocity, self.max_accel)
         self._corner_v2 = JUNCTION_RULES[self.name]
         self.commanded_pos = [float(v) for v in start_position_mm]
+        self.stops = 0  # stop commands met (see stop())
+        self.on_stop = None  # callable(t_s, lineno) told the print time of every stop
         self.queue: list[_Move] = []
         self.junction_flush = BUFFER_TIME_HIGH
         self.need_prime = True
@@ -407,11 +412,23 @@ class KlipperPlanner:
 
     def sync(self, reason: str, lineno: int) -> None:
         if reason in ("M84", "M18"):
+            self.get_last_move_time()  # (the dwell's own flush, made first to report the rest)
+            if self.on_stop is not None:
+                self.on_stop(self.print_time, lineno)
             self.dwell(MOTOR_OFF_DWELL_S, lineno)
             self.get_last_move_time()
             self.dwell(MOTOR_OFF_DWELL_S, lineno)
         else:
             self._flush_lookahead()
+            if self.on_stop is not None:
+                self.on_stop(self.print_time, lineno)
+
+    def stop(self, command: str, lineno: int) -> None:
+        """A command that stops or moves the machine on its own: flush to rest first (as M400)."""
+        self._flush_lookahead()
+        self.stops += 1
+        if self.on_stop is not None:
+            self.on_stop(self.print_time, lineno)
 
     def home(self, position, lineno: int) -> None:
         self._flush_lookahead()

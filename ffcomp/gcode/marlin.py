@@ -112,6 +112,8 @@ class MarlinPlanner:
         self._corner_v2 = JUNCTION_RULES[self.name]
         self.capacity = block_buffer_size - 2  # one slot stays empty, one block is executing
         self.commanded_pos = [float(v) for v in start_position_mm]
+        self.stops = 0  # stop commands met (see stop())
+        self.on_stop = None  # callable(t_s, lineno) told the print time of every stop
         self.queue: list[_Block] = []
         self.prev_unit = (0.0, 0.0, 0.0, 0.0)
         self.prev_nominal_speed = 0.0
@@ -295,6 +297,15 @@ class MarlinPlanner:
 
     def sync(self, reason: str, lineno: int) -> None:
         self._drain()
+        if self.on_stop is not None:
+            self.on_stop(self.print_time, lineno)
+
+    def stop(self, command: str, lineno: int) -> None:
+        """A command that stops or moves the machine on its own: drain the buffer first (as M400)."""
+        self._drain()
+        self.stops += 1
+        if self.on_stop is not None:
+            self.on_stop(self.print_time, lineno)
 
     def home(self, position, lineno: int) -> None:
         self._drain()

@@ -23,7 +23,17 @@ Both accept G2/G3 in the I/J (I/K, J/K) and R forms and split arcs by Klipper's 
 
 A malformed motion/state line raises :class:`~ffcomp.errors.GcodeError` (path, line number, reason,
 text).  With ``lenient=True`` it is counted as a warning instead, its state changes are discarded and
-the line is passed through untouched (``op=None``, ``error`` set).
+the line is marked skipped (``op=None``, ``error`` set; the compensated output comments it out).
+
+Every other command is classified by :mod:`ffcomp.gcode.commands` (pass-through, stop, or an unknown
+command that the ``unknown_policy`` decides); the counts per class are in :attr:`GcodeParser.counts`.
+
+Guards against pathological input (each names the file and line): a feed rate below
+:data:`MIN_FEED_MM_S`, a single move that would last longer than :data:`MAX_MOVE_S`, a dwell longer than
+:data:`MAX_DWELL_S`, a line longer than :data:`MAX_LINE_CHARS`, and bytes that are not UTF-8 inside a
+command (in comments and pass-through lines they are kept as they are: files are read with
+``errors="surrogateescape"``, so writing with the same handler restores the bytes).  A UTF-8
+byte-order mark at the start of the file is dropped.
 """
 
 from __future__ import annotations
@@ -35,7 +45,8 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from ..errors import GcodeError
-from .arcs import offset_from_radius, plan_arc
+from .arcs import arc_travel, offset_from_radius, plan_arc
+from .commands import PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, classify
 from .records import (
     ArcMove,
     Dwell,
@@ -44,11 +55,40 @@ from .records import (
     LimitsChange,
     LinearMove,
     ModeChange,
+    Stop,
     Sync,
 )
 from .words import classic_words, extended_params, lex, number
 
-__all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text"]
+__all__ = ["Dialect", "DIALECTS", "GcodeParser", "parse_gcode", "parse_text", "MIN_FEED_MM_S", "MAX_SLOW_MOVE_S",
+           "MAX_MOVE_S", "MAX_DWELL_S", "MAX_ARC_MM", "MAX_LINE_CHARS"]
+
+#: slowest feed rate accepted for a move that lasts, mm/s (F6).  Slicers and start scripts never go
+#: below about 1 mm/s (F60, slow probing or purging); F0.001 or F1 are typos or a mm/s-for-mm/min
+#: mix-up, and at 1 kHz sampling they would make the compensation generate millions of samples for one
+#: line.  ffcomp's own output holds the toolhead still with micrometre moves at lower feed rates for
+#: fractions of a second, so the rule applies to moves lasting longer than :data:`MAX_SLOW_MOVE_S`.
+MIN_FEED_MM_S = 0.1
+#: a move slower than :data:`MIN_FEED_MM_S` is an error once it lasts longer than this, s
+MAX_SLOW_MOVE_S = 10.0
+#: longest single move accepted, s.  The slowest legitimate move, the full z travel of a tall delta
+#: (~1 m) at a careful 5 mm/s, takes 200 s; 15 min leaves a margin of 4 and bounds one line's samples
+#: (about 11 MB of temporary command file at 1 kHz).
+MAX_MOVE_S = 900.0
+#: longest single dwell accepted, s.  Heat soaks of up to an hour (``G4 S3600``) are real; longer
+#: dwells belong in a macro (the compensation samples a dwell like a move: 1 h is ~43 MB and ~30 s of
+#: processing).
+MAX_DWELL_S = 3600.0
+#: longest arc accepted, mm.  G2/G3 make at most one turn, and a full circle of 1 m radius (beyond any
+#: delta's print radius) is 6.3 m; a longer arc comes from a bad centre or radius and would be split
+#: into one chord per millimetre.
+MAX_ARC_MM = 10000.0
+#: longest line accepted, characters (real files stay under a few kB; a longer "line" is binary data
+#: or a file without line breaks, and reading it whole would take unbounded memory).
+MAX_LINE_CHARS = 1 << 20
+#: below this requested speed a move's duration is checked against :data:`MAX_MOVE_S` (a faster move
+#: cannot last that long inside a printer's workspace), mm/s
+_SLOW_CHECK_MM_S = 10.0
 
 _NUMCHARS = "0123456789.+-"
 _PLANES = {"XY": (0, 1, 2, "IJ"), "XZ": (0, 2, 1, "IK"), "YZ": (1, 2, 0, "JK")}
@@ -114,12 +154,23 @@ class GcodeParser:
         Machine position before the first line (the machine is assumed homed).
     max_kept_warnings : int
         How many warning messages :attr:`warning_messages` keeps (all are counted).
+    unknown_policy : str
+        What an unknown macro or G code is (:data:`~ffcomp.gcode.commands.UNKNOWN_POLICIES`): ``"stop"``
+        (a :class:`Stop`, with a warning), ``"pass"`` (passed through, with a warning) or ``"refuse"``
+        (an error).
 
     Attributes
     ----------
     lines_read : int
     warnings : int
     warning_messages : list of str
+    counts : dict
+        Commands seen per class: ``pass``, ``state``, ``stop`` (known stops), ``unknown`` (unknown
+        commands, whatever the policy made of them), ``skipped`` (malformed lines skipped leniently).
+    first_motion_line, first_home_line : int or None
+        Line numbers of the first move (G0-G3) and of the first G28.
+    first_motion : LinearMove, ArcMove or None
+        The first move (a linear move's end is where the file first sends the toolhead).
     """
 
     def __init__(
@@ -133,11 +184,19 @@ class GcodeParser:
         home_position_mm: tuple = (0.0, 0.0, 0.0),
         start_position_mm: tuple = (0.0, 0.0, 0.0, 0.0),
         max_kept_warnings: int = 100,
+        unknown_policy: str = "stop",
     ):
         if dialect not in DIALECTS:
             raise ValueError(f"unknown G-code dialect {dialect!r} (known: {', '.join(DIALECTS)})")
         if not arc_resolution_mm > 0:
             raise ValueError(f"arc_resolution_mm must be > 0, got {arc_resolution_mm}")
+        if unknown_policy not in UNKNOWN_POLICIES:
+            raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {unknown_policy!r}")
+        self.unknown_policy = unknown_policy
+        self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0}
+        self.first_motion_line: int | None = None
+        self.first_home_line: int | None = None
+        self.first_motion: LinearMove | ArcMove | None = None
         self._lines = lines
         self.path = str(path)
         self.lenient = lenient
@@ -175,19 +234,23 @@ class GcodeParser:
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[GcodeLine]:
         handlers = self._handlers
-        path = self.path
-        lenient = self.lenient
         lineno = 0
-        for raw in self._lines:
+        for raw in _without_bom(self._lines):
             lineno += 1
             self.lines_read = lineno
             # fast path: plain "G1 ..." / "G0 ..." lines with no comment, checksum or compact words
+            if len(raw) > MAX_LINE_CHARS:
+                yield self._bad(lineno, raw[:200], "", f"line longer than {MAX_LINE_CHARS} characters: "
+                                "not G-code")
+                continue
             if raw[:3] in ("G1 ", "G0 ") and ";" not in raw and "(" not in raw:
                 try:
                     op = self._move(raw[3:].split(), raw[1] == "0")
                 except _LineError as e:
                     yield self._bad(lineno, raw, "G" + raw[1], str(e))
                     continue
+                if self.first_motion_line is None:
+                    self._first_motion(lineno, op)
                 yield GcodeLine(lineno, raw, "G" + raw[1], op)
                 continue
             text = raw.rstrip("\r\n")
@@ -198,26 +261,70 @@ class GcodeParser:
                 continue
             h = handlers.get(cmd)
             if h is None:
-                yield GcodeLine(lineno, raw, cmd)
+                try:
+                    op = self._other(cmd, lineno, text)
+                except _LineError as e:
+                    yield self._bad(lineno, raw, cmd, str(e))
+                    continue
+                yield GcodeLine(lineno, raw, cmd, op)
                 continue
             snapshot = self._snapshot()
             try:
                 op = h(params)
             except (_LineError, ValueError) as e:
                 self._restore(snapshot)
-                if not lenient:
-                    raise GcodeError(path, lineno, str(e), text) from None
                 yield self._bad(lineno, raw, cmd, str(e))
                 continue
+            if TABLE.get(cmd) == STATE:
+                self.counts[STATE] += 1
+            elif self.first_motion_line is None and isinstance(op, (LinearMove, ArcMove)):
+                self._first_motion(lineno, op)
+            elif cmd == "G28" and self.first_home_line is None:
+                self.first_home_line = lineno
             yield GcodeLine(lineno, raw, cmd, op)
+
+    def _first_motion(self, lineno: int, op) -> None:
+        if isinstance(op, ArcMove) or (isinstance(op, LinearMove) and op.start[:3] != op.end[:3]):
+            self.first_motion_line = lineno
+            self.first_motion = op
+
+    def _other(self, cmd: str, lineno: int, text: str):
+        """A command the parser does not execute: classified by :mod:`ffcomp.gcode.commands`."""
+        if not cmd:
+            return None
+        cls = classify(cmd)
+        if cls == PASS:
+            self.counts[PASS] += 1
+            return None
+        if cls == STOP:
+            self.counts[STOP] += 1
+            return Stop(cmd)
+        # an unknown macro or G code: the policy decides
+        if _has_undecodable(cmd):
+            _fail("bytes that are not UTF-8 inside a command")
+        if self.unknown_policy == "refuse":
+            _fail(f"unknown command {cmd!r} (it may move the toolhead; --unknown-commands stop or pass "
+                  "decides what to do with it)")
+        self.counts[UNKNOWN] += 1
+        policy = self.unknown_policy
+        self._warn(lineno, f"unknown command {cmd!r} "
+                   + ("treated as a stop (the toolhead comes to rest before it)" if policy == "stop"
+                      else "passed through (it runs wherever the compensated motion is)"), text)
+        return Stop(cmd, unknown=True) if policy == "stop" else None
+
+    def _warn(self, lineno: int, reason: str, text: str) -> None:
+        self.warnings += 1
+        if len(self.warning_messages) < self.max_kept_warnings:
+            self.warning_messages.append(f"{self.path}:{lineno}: {reason}: {_printable(text.strip())}")
 
     def _bad(self, lineno: int, raw: str, cmd: str, reason: str) -> GcodeLine:
         text = raw.rstrip("\r\n")
+        if _has_undecodable(text) and "not UTF-8" not in reason:
+            reason += " (the line holds bytes that are not UTF-8)"
         if not self.lenient:
-            raise GcodeError(self.path, lineno, reason, text)
-        self.warnings += 1
-        if len(self.warning_messages) < self.max_kept_warnings:
-            self.warning_messages.append(f"{self.path}:{lineno}: {reason}: {text.strip()!r}")
+            raise GcodeError(self.path, lineno, reason, _printable(text)) from None
+        self.counts["skipped"] += 1
+        self._warn(lineno, reason + " (skipped)", text)
         return GcodeLine(lineno, raw, cmd, None, reason)
 
     def _snapshot(self):
@@ -348,12 +455,34 @@ class GcodeParser:
                 e += v
             else:
                 e = v + bp[3]
+        old_speed = self.speed
         if vf is not None:
             self._set_speed(vf)
-        self.last_position = [x, y, z, e]
         if vx is None and vy is None and vz is None and ve is None:
+            self.last_position = [x, y, z, e]
             return ModeChange("feedrate_mm_s", self.speed)
+        if self.speed < _SLOW_CHECK_MM_S:
+            d = math.sqrt((x - x0) ** 2 + (y - y0) ** 2 + (z - z0) ** 2) or abs(e - e0)
+            try:
+                self._check_slow(d)
+            except _LineError:
+                self.speed = old_speed  # a refused line changes no state
+                raise
+        self.last_position = [x, y, z, e]
         return LinearMove((x0, y0, z0, e0), (x, y, z, e), self.speed, rapid)
+
+    def _check_slow(self, distance_mm: float) -> None:
+        """Guards of a move of ``distance_mm`` at the current (slow) speed."""
+        if distance_mm <= 0.0:
+            return
+        v = self.speed
+        if v < MIN_FEED_MM_S and distance_mm / v > MAX_SLOW_MOVE_S:
+            _fail(f"feed rate {v * 60:.4g} mm/min ({v:.3g} mm/s) is below the minimum "
+                  f"{MIN_FEED_MM_S * 60:g} mm/min ({MIN_FEED_MM_S:g} mm/s) for a {distance_mm:.4g} mm move: "
+                  "no printer moves this slowly (a typo, or mm/s written where G-code wants mm/min?)")
+        if distance_mm / v > MAX_MOVE_S:
+            _fail(f"this move would last at least {distance_mm / v:.0f} s ({distance_mm:.4g} mm at "
+                  f"{v * 60:.4g} mm/min), longer than the {MAX_MOVE_S:g} s allowed for one move")
 
     def _g0(self, params):
         return self._move(params, True)
@@ -407,6 +536,10 @@ class GcodeParser:
             off = (w.get(ij[0], 0.0) * u, w.get(ij[1], 0.0) * u)
             if not (off[0] or off[1]):
                 _fail(f"G2/G3 needs a centre offset {ij[0]}/{ij[1]} or a radius R")
+        length = arc_travel(cur, target, off, clockwise, (a, b, h))[2]
+        if not length <= MAX_ARC_MM:
+            _fail(f"arc of {length:.4g} mm is longer than the {MAX_ARC_MM:g} mm allowed (a wrong centre or "
+                  "radius?)")
         points, center, radius, angle = plan_arc(cur, target, off, clockwise, (a, b, h),
                                                  self.arc_resolution_mm)
         e_absolute = not self._e_relative()
@@ -417,6 +550,8 @@ class GcodeParser:
             e_per_move = (w["E"] * u - e_base) / len(points)
         if "F" in w:
             self._set_speed(w["F"])
+        if self.speed < _SLOW_CHECK_MM_S:
+            self._check_slow(abs(angle) * radius + abs(target[h] - cur[h]))
         segs = []
         for p in points:
             ve = None
@@ -436,7 +571,11 @@ class GcodeParser:
         s = self._need(w, "S", "G4")
         if (p is not None and p < 0) or (s is not None and s < 0):
             _fail("negative dwell time")
-        return Dwell(float(self.dialect.dwell_seconds(p, s)))
+        t = float(self.dialect.dwell_seconds(p, s))
+        if t > MAX_DWELL_S:
+            _fail(f"dwell of {t:.0f} s is longer than the {MAX_DWELL_S:g} s allowed (put long waits in a "
+                  "macro: the compensation samples a dwell like a move)")
+        return Dwell(t)
 
     def _g17(self, params):
         self.plane = "XY"
@@ -634,9 +773,45 @@ class GcodeParser:
         return ModeChange("gcode_offset", tuple(self.homing_position))
 
 
+def _without_bom(lines: Iterable[str]) -> Iterator[str]:
+    """``lines`` without a UTF-8 byte-order mark at the start of the first: it marks the encoding, and a
+    firmware would read it as part of the first command (``\ufeffG28`` is no G28)."""
+    it = iter(lines)
+    first = next(it, None)
+    if first is None:
+        return
+    yield first[1:] if first.startswith("\ufeff") else first
+    yield from it
+
+
+def _has_undecodable(text: str) -> bool:
+    """Whether ``text`` (read with ``errors="surrogateescape"``) holds bytes that were not UTF-8."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
+
+
+def _printable(text: str) -> str:
+    """``text`` with undecodable bytes shown as ``\\xNN`` (safe to print anywhere)."""
+    if not _has_undecodable(text):
+        return text
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 def _open_lines(path: Path) -> Iterator[str]:
+    """Lines of a file, terminators kept, undecodable bytes as surrogates; a line longer than
+    :data:`MAX_LINE_CHARS` comes in pieces (the parser rejects the first), so memory stays bounded."""
+    limit = MAX_LINE_CHARS + 1
     with open(path, encoding="utf-8", errors="surrogateescape", newline="") as f:
-        yield from f
+        for line in iter(lambda: f.readline(limit), ""):
+            yield line
+            if len(line) == limit and not line.endswith(("\n", "\r")):  # drop the rest of a long line
+                while True:
+                    rest = f.readline(limit)
+                    if not rest or rest.endswith(("\n", "\r")):
+                        break
 
 
 def parse_gcode(source, **kw) -> GcodeParser:

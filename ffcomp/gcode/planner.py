@@ -4,8 +4,13 @@ The firmware variants live in :data:`PLANNERS` (name -> planner class); the prof
 ``limits.planner`` picks one (``firmware=`` overrides it).  Every variant has the same interface:
 
 ``move(end, speed_mm_s, line)``, ``dwell(seconds, lineno)``, ``sync(reason, lineno)``,
-``home(position, lineno)``, ``limits(op, line)``, ``finish()`` and ``take()`` (the moves finalized so
-far, in order).
+``stop(command, lineno)``, ``home(position, lineno)``, ``limits(op, line)``, ``finish()`` and ``take()``
+(the moves finalized so far, in order).
+
+A stop (:class:`~ffcomp.gcode.records.Stop`: M600, PAUSE, T1, G29, G10, an unknown macro...) flushes the
+lookahead like M400, so the toolhead is at rest when the firmware runs the command; the planner counts
+it (``stops``) and reports its print time to ``on_stop(t_s, lineno)`` if that is set.  ``sync`` (M400,
+M18/M84) reports its rest to ``on_stop`` too: the firmware waits there for the queue to drain.
 
 Planning streams: the lookahead queue holds only the moves that can still change (Klipper: about
 0.25-2 s of motion; Marlin: the block buffer), so memory does not grow with the file.
@@ -20,11 +25,12 @@ from __future__ import annotations
 
 from typing import Iterable, Iterator
 
+from ..errors import GcodeError
 from .klipper import KlipperPlanner
 from .marlin import MarlinPlanner
-from .moves import PlannedMove
-from .parser import GcodeParser, parse_gcode
-from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Sync
+from .moves import DWELL, PlannedMove
+from .parser import MAX_MOVE_S, GcodeParser, parse_gcode
+from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
 
 __all__ = ["PLANNERS", "plan_moves", "plan_gcode", "GcodePlan", "make_planner"]
 
@@ -55,6 +61,10 @@ def _sync(p, op: Sync, line: GcodeLine) -> None:
     p.sync(op.reason, line.lineno)
 
 
+def _stop(p, op: Stop, line: GcodeLine) -> None:
+    p.stop(op.command, line.lineno)
+
+
 def _limits(p, op: LimitsChange, line: GcodeLine) -> None:
     p.limits(op, line)
 
@@ -69,6 +79,7 @@ _OPS = {
     Dwell: _dwell,
     Home: _home,
     Sync: _sync,
+    Stop: _stop,
     LimitsChange: _limits,
     ModeChange: _nothing,
 }
@@ -104,7 +115,11 @@ def plan_moves(records: Iterable[GcodeLine], profile, *, firmware: str | None = 
 
 
 def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
-    """Feed parsed lines to planner ``p``; yield its moves as they become final."""
+    """Feed parsed lines to planner ``p``; yield its moves as they become final.
+
+    A planned move lasting longer than :data:`~ffcomp.gcode.parser.MAX_MOVE_S` (e.g. under an absurd
+    ``SET_VELOCITY_LIMIT ACCEL=0.001``) is a :class:`GcodeError` naming its line.
+    """
     ops = _OPS
     for line in records:
         op = line.op
@@ -112,9 +127,21 @@ def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
             continue
         ops[type(op)](p, op, line)
         if p.out:
-            yield from p.take()
+            yield from _checked(p, p.take())
     p.finish()
-    yield from p.take()
+    yield from _checked(p, p.take())
+
+
+def _checked(p, moves: list[PlannedMove]) -> list[PlannedMove]:
+    if not moves or moves[-1].t_end_s - moves[0].t_start_s <= MAX_MOVE_S:  # moves follow without gaps
+        return moves
+    for m in moves:
+        if m.accel_t_s + m.cruise_t_s + m.decel_t_s > MAX_MOVE_S and m.kind != DWELL:
+            raise GcodeError(getattr(p, "path", "<gcode>"), m.lineno,
+                             f"this move would last {m.duration_s:.0f} s (over {m.distance_mm:.4g} mm at up to "
+                             f"{m.cruise_v_mm_s:.3g} mm/s, {m.accel_mm_s2:.3g} mm/s^2), longer than the "
+                             f"{MAX_MOVE_S:g} s allowed for one move")
+    return moves
 
 
 class GcodePlan:
@@ -137,13 +164,16 @@ class GcodePlan:
         Position before the first line (the machine is assumed homed there).
     path : str, optional
         Name for error messages when ``source`` is not a file name.
+    unknown_policy : str
+        What an unknown macro or G code is (``stop``, ``pass`` or ``refuse``; see
+        :mod:`ffcomp.gcode.commands`).
     **planner_kw
         Passed to the planner class.
     """
 
     def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
                  arc_resolution_mm: float = 1.0, start_position_mm=(0.0, 0.0, 0.0, 0.0),
-                 path: str | None = None, **planner_kw):
+                 path: str | None = None, unknown_policy: str = "stop", **planner_kw):
         self.profile = profile
         self.firmware = firmware or profile.limits.planner
         if self.firmware not in PLANNERS:
@@ -151,7 +181,8 @@ class GcodePlan:
         pkw = {} if path is None else {"path": path}
         self.parser: GcodeParser = parse_gcode(
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
-            home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm)
+            home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm,
+            unknown_policy=unknown_policy)
         self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
                                     start_position_mm=start_position_mm, **planner_kw)
         self._used = False

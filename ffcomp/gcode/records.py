@@ -26,6 +26,7 @@ __all__ = [
     "Sync",
     "LimitsChange",
     "ModeChange",
+    "Stop",
     "Op",
     "GcodeLine",
 ]
@@ -160,7 +161,18 @@ class ModeChange:
     value: object
 
 
-Op = Union[LinearMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange]
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """A command after which the machine has stopped, moved or changed on its own (M600, PAUSE, T1,
+    G29, G10, an unknown macro...; see :mod:`ffcomp.gcode.commands`).  The planner brings the toolhead to
+    rest before it; the line itself passes through.  ``unknown`` is True for a command the table does not
+    know (treated as a stop by the unknown-command policy)."""
+
+    command: str
+    unknown: bool = False
+
+
+Op = Union[LinearMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange, Stop]
 
 
 class GcodeLine(NamedTuple):

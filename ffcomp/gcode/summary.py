@@ -28,7 +28,8 @@ class PlanSummary:
     path, planner : str
         Source and firmware planner used.
     lines, warnings, ignored_commands : int
-        Input lines, malformed lines skipped in lenient mode, limit commands the firmware ignores.
+        Input lines, warnings (malformed lines skipped in lenient mode, unknown commands), limit commands
+        the firmware ignores.
     moves, extrude_only_moves, dwells : int
         Planned XYZ moves (arc chords counted singly), extruder-only moves, dwells.
     duration_s, dwell_time_s : float
@@ -42,6 +43,9 @@ class PlanSummary:
     bbox_min_mm, bbox_max_mm : tuple of 3 float
         Extent of the XYZ path.
     warning_messages : tuple of str
+    command_counts : dict
+        Non-motion commands per class (``pass``, ``state``, ``stop``, ``unknown``, ``skipped``; see
+        :mod:`ffcomp.gcode.commands`).
     """
 
     path: str
@@ -64,6 +68,7 @@ class PlanSummary:
     bbox_min_mm: tuple
     bbox_max_mm: tuple
     warning_messages: tuple = field(default=())
+    command_counts: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -210,6 +215,7 @@ def summarize_gcode(source, profile, *, lenient: bool = False, firmware: str | N
         bbox_min_mm=tuple(acc.lo) if finite else (0.0, 0.0, 0.0),
         bbox_max_mm=tuple(acc.hi) if finite else (0.0, 0.0, 0.0),
         warning_messages=tuple(plan.parser.warning_messages),
+        command_counts=dict(plan.parser.counts),
     )
     if not trace:
         return s

@@ -15,7 +15,14 @@ the compensated nozzle positions, and every other line kept in place.
   output is in machine coordinates), speed and flow factors, and motion-limit commands (the header
   sets the limits the compensated file needs).
 * Extruder-only moves become ``G1 E.. F..`` with the planned speed; dwells, homing, temperatures,
-  fans, comments and object labels pass through verbatim.
+  fans, comments and object labels pass through verbatim (byte for byte: the caller opens ``out``
+  with ``errors="surrogateescape"``, as the parser reads).  Lines a lenient parse skipped are kept as
+  ``; ffcomp (skipped):`` comments.
+* The body carries :data:`~ffcomp.gcode.signature.SIGNATURE_LINE` before its first segment and then
+  at the first run of segments after every :data:`~ffcomp.gcode.signature.SIGNATURE_EVERY_LINES`
+  lines, so a compensated file is recognised even without its header.
+* ``start_travel_mm_s`` set: the first motion is an ordinary travel to the first compensated point at
+  that speed (the toolhead's position before an un-homed file is not known to the firmware's plan).
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ import numpy as np
 
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
+from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES"]
 
@@ -68,6 +76,7 @@ class WriterStats:
     motion_lines_replaced: int = 0
     lines_passed: int = 0
     lines_commented: int = 0
+    lines_skipped: int = 0
     extrude_moves: int = 0
     holds: int = 0
     peak_speed_mm_s: float = 0.0
@@ -120,6 +129,9 @@ class GcodeWriter:
         #: bounded); not recorded without one
         self.segment_table = segment_table
         self._write = out.write
+        self._next_sig = 0  # body line at or after which the next signature line is due
+        #: speed of the travel to the first point (None: no travel; see the module docstring), mm/s
+        self.start_travel_mm_s: float | None = None
 
     def _w(self, text: str) -> None:
         self._write(text)
@@ -144,6 +156,10 @@ class GcodeWriter:
             if isinstance(op, (LinearMove, ArcMove)):
                 if ln.lineno not in self.replaced:  # produced no planned motion (zero length)
                     w("; ffcomp (no motion): " + raw)
+                continue
+            if ln.error is not None:  # a lenient parse skipped it: it must not run
+                w("; ffcomp (skipped): " + raw)
+                self.stats.lines_skipped += 1
                 continue
             if isinstance(op, LimitsChange) or (isinstance(op, ModeChange) and op.name in BAKED_MODES):
                 w("; ffcomp (baked in): " + raw)
@@ -182,7 +198,12 @@ class GcodeWriter:
         seg_base = []
         for r, run in enumerate(runs):
             mv, kind, ln = run.move, run.kind, run.lineno
+            if self.nlines >= self._next_sig:
+                self._w(SIGNATURE_LINE)
+                self._next_sig = self.nlines + SIGNATURE_EVERY_LINES
             self.flush_lines(ln)
+            if self.start_travel_mm_s is not None:
+                self._start_travel(xyz_mm[0])
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
                 if s1 > s0:
@@ -354,6 +375,12 @@ class GcodeWriter:
         for m_, r in enumerate(ext_runs.tolist()):
             ch.extrude_de[r] = float(out[len(seg_run) + m_])
         return out[: len(seg_run)]
+
+    def _start_travel(self, p_mm: np.ndarray) -> None:
+        """The ordinary travel to the first compensated point (before the compensated motion)."""
+        x, y, z = np.round(p_mm, 4).tolist()
+        self._w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{self.start_travel_mm_s * 60:.1f} ; ffcomp: travel to the start\n")
+        self.start_travel_mm_s = None
 
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
         self._w(f"G4 P{mv.cruise_t_s * 1000:.0f}\n")

@@ -25,6 +25,8 @@ from ..gcode.flavour import detect_flavour, flavour_mismatch
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
+from ..gcode.signature import scan_gcode
+from ..gcode.start import resolve_start
 from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import carriage_rates, forward, inverse
@@ -57,6 +59,11 @@ class CompensateOptions:
         moves, dwells): a G-code file cannot move the nozzle during those lines
     corner_velocity_mm_s : the SQUARE_CORNER_VELOCITY the header sets: the compensated path already
         slows where the plan slows, so the firmware must not slow it again at every small turn
+    start_mm : (x, y, z) where the toolhead stands before a file that moves before homing (``--start``);
+        None: the target of the file's first move (:mod:`ffcomp.gcode.start`)
+    unknown_policy : what an unknown macro or G code is: ``stop`` (the toolhead comes to rest before it,
+        with a warning), ``pass`` (copied verbatim, with a warning) or ``refuse`` (an error); see
+        :mod:`ffcomp.gcode.commands`
     """
 
     method: str = "lpv"
@@ -71,6 +78,8 @@ class CompensateOptions:
     corner_velocity_mm_s: float = 100.0
     block_len: int = 4096
     inverse: InverseConfig = field(default_factory=InverseConfig)
+    start_mm: tuple | None = None
+    unknown_policy: str = "stop"
 
 
 @dataclass
@@ -104,30 +113,34 @@ class CompensationSummary:
     firmware: str = ""
     source_flavour: str | None = None
     stale_temps_removed: int = 0
+    #: non-motion commands by class (ffcomp.gcode.commands): passed through verbatim, baked in (kept as
+    #: comments), stops (the toolhead rests there: known stops and unknown commands the policy made
+    #: stops), unknown commands (whatever the policy did), malformed lines skipped (--lenient)
+    commands_passed: int = 0
+    commands_baked: int = 0
+    commands_stopped: int = 0
+    commands_unknown: int = 0
+    lines_skipped: int = 0
+    #: where the plan starts (x, y, z mm) and whether the file homes before its first move
+    start_mm: list | None = None
+    homed_first: bool | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def _refuse_compensated(path: str) -> None:
-    """Compensating a file twice would invert the model twice: refuse a file ffcomp wrote."""
-    with open(path, encoding="utf-8", errors="replace") as f:
-        for i, line in enumerate(f, 1):
-            if line.startswith("; ffcomp ") and "feedforward vibration compensation" in line:
-                raise GcodeError(path, i, "this file is already compensated by ffcomp (compensate the "
-                                 "slicer's original instead)", line)
-            if i >= 5:
-                return
-
-
-def _count_lines(path: str) -> int:
-    n = 0
-    with open(path, "rb") as f:
-        while True:
-            b = f.read(1 << 20)
-            if not b:
-                return n
-            n += b.count(b"\n")
+def _refuse_compensated(path: str) -> int:
+    """Compensating a file twice would invert the model twice: refuse a file ffcomp wrote, by the marks
+    its body carries anywhere (:mod:`ffcomp.gcode.signature`).  Returns the file's line count."""
+    scan = scan_gcode(path)
+    if scan.mark_line is not None:
+        raise GcodeError(path, scan.mark_line, "this file is already compensated by ffcomp (compensate the "
+                         "slicer's original instead)", scan.mark_text)
+    if scan.intrinsic:
+        raise GcodeError(path, 0, f"this file is already compensated by ffcomp: {scan.segment_lines} of its "
+                         f"{scan.g1_lines} G1 lines have the form ffcomp writes (compensate the slicer's "
+                         "original instead)")
+    return scan.lines
 
 
 def compensate_file(src: str, out_path: str | None, profile, opts: CompensateOptions = CompensateOptions(),
@@ -162,17 +175,21 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
-    _refuse_compensated(src)
+    if opts.unknown_policy not in ("stop", "pass", "refuse"):
+        raise ValueError(f"unknown_policy must be stop, pass or refuse, got {opts.unknown_policy!r}")
+    total_lines = _refuse_compensated(src)
     if out_path is not None:  # a path that cannot be written fails now, not after all the work
         out_path = check_output_path(out_path)
-    total_lines = _count_lines(src)
+    start = resolve_start(src, profile, opts.start_mm)
     model = LpvModel.from_profile(profile)
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
     icfg = inverse_config(profile, opts)
     summ = CompensationSummary(source=src, output=str(out_path) if out_path else "-", method=opts.method,
-                               lines_in=total_lines, firmware=profile.limits.planner)
+                               lines_in=total_lines, firmware=profile.limits.planner,
+                               start_mm=list(start.position_mm[:3]), homed_first=start.homed_first)
     _check_flavour(src, profile, summ)
+    start_warning = start.warning(src)
     out_dir = os.path.dirname(os.path.abspath(out_path)) if out_path else tempfile.gettempdir()
     summ.stale_temps_removed = len(sweep_stale(out_dir))  # leftovers of runs that were killed
     body_path = qfile = segfile = final_tmp = None
@@ -182,16 +199,19 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         seg_fd, segfile = make_temp(out_dir, "seg", ".i64")
         os.close(seg_fd)
         moves: dict = {}
-        plan = GcodePlan(src, profile, lenient=opts.lenient)
+        plan = GcodePlan(src, profile, lenient=opts.lenient, start_position_mm=start.position_mm,
+                         unknown_policy=opts.unknown_policy)
         body_fd, body_path = make_temp(out_dir, "body", ".gcode")  # opened at once below: no fd leaks
-        with os.fdopen(body_fd, "w", encoding="utf-8", newline="") as body, open(qfile, "wb") as qf, \
-                open(segfile, "wb") as sf:
+        with os.fdopen(body_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as body, \
+                open(qfile, "wb") as qf, open(segfile, "wb") as sf:
             lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
-                                     home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm)))
+                                     home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
+                                     start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy))
             accel = header_accel(profile, opts)
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
                                  max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf)
+            writer.start_travel_mm_s = start.travel_mm_s
             pred = Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
@@ -237,6 +257,11 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 emit(qc, meta)
             writer.finish()
         summ.warnings += plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
+        _count_commands(summ, plan.parser.counts)
+        if start_warning:
+            summ.warnings += 1
+            summ.notes.append(start_warning)
+        summ.notes.extend(plan.parser.warning_messages[:20])
         _stage(progress, "writing", total_lines)
         summ.segments = writer.stats.segments
         if pred is not None:
@@ -250,7 +275,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         head, foot = header_lines(profile, opts, src, accel)
         final_fd, final_tmp = make_temp(out_dir, "out", ".gcode")
         n_out = 0
-        with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:
+        with os.fdopen(final_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as fo, \
+                open(body_path, encoding="utf-8", errors="surrogateescape", newline="") as fb:
             for ln in head:
                 fo.write(ln + "\n")
             for ln in fb:
@@ -303,6 +329,15 @@ def _check_flavour(src: str, profile, summ: CompensationSummary) -> None:
         summ.notes.append(msg)
 
 
+def _count_commands(summ: CompensationSummary, counts: dict) -> None:
+    """The parser's per-class command counts into the summary (see :mod:`ffcomp.gcode.commands`)."""
+    summ.commands_passed = counts.get("pass", 0)
+    summ.commands_baked = counts.get("state", 0)
+    summ.commands_stopped = counts.get("stop", 0)
+    summ.commands_unknown = counts.get("unknown", 0)
+    summ.lines_skipped = counts.get("skipped", 0)
+
+
 def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, icfg: InverseConfig, opts,
                        summ: CompensationSummary, src: str):
     """Compensated carriage commands of a planned file, in order, with each sample's reference.
@@ -312,6 +347,10 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     (index -> PlannedMove) as they go by.  A homing (a jump of the carriages) ends one compensation
     stream and starts the next; each stream begins with ``pre_s`` and ends with ``post_s`` of rest,
     which the output keeps (so the command can pre-actuate the first move and settle after the last).
+    A stop command (M600, PAUSE, T1, G29, M109, an unknown macro...: the planner brings the toolhead to
+    rest there) or a sync (M400, M84) ends a stream the same way, so the command stands still at the
+    plan's rest position when the firmware runs it, and the next stream starts from rest after it.  A
+    file without XYZ motion is an error (nothing to compensate).
     """
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -319,10 +358,16 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     inv = None
     last_q = None
     last_meta = None
+    stops: list[float] = []  # print times of stops not yet applied to the stream
+    plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
+    n_xyz = 0
 
     def tee():
+        nonlocal n_xyz
         for mv in plan:
             moves[mv.index] = mv
+            if mv.kind == "move":
+                n_xyz += 1
             yield mv
 
     def out(qc):
@@ -342,14 +387,21 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
         jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
         if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
             jumps = np.concatenate([[0], jumps])
-        for pc in np.split(np.arange(len(q)), jumps):
+        # stops: the stream ends where the plan comes to rest (the first sample at or after the stop)
+        t_end = blk.t_s[-1]
+        here = [t for t in stops if t <= t_end]
+        stops[:] = [t for t in stops if t > t_end]
+        at_stop = np.unique(np.searchsorted(blk.t_s, np.asarray(here, float) - 1e-9)) if here else np.zeros(0, int)
+        cuts = np.union1d(jumps, at_stop).astype(int)
+        for pc in np.split(np.arange(len(q)), cuts):
             if len(pc) == 0:
                 continue
-            if inv is not None and pc[0] in jumps:
+            if inv is not None and pc[0] in cuts:
                 push_post(last_meta)
                 yield from out(inv.finish())
                 inv = None
-                summ.restarts += 1
+                if pc[0] in jumps:
+                    summ.restarts += 1
             sl = slice(pc[0], pc[-1] + 1)
             if inv is None:
                 inv = StreamingInverse(model, dt, icfg, keep_padding=True)
@@ -369,6 +421,9 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     if inv is not None:
         push_post(last_meta)
         yield from out(inv.finish())
+    if n_xyz == 0:
+        raise GcodeError(src, plan.parser.lines_read, "the file has no XYZ motion (empty, comments only, or no "
+                         "moves): nothing to compensate")
 
 
 def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:

@@ -44,7 +44,10 @@ class OutputCheck:
 
 def check_gcode_output(profile, src: str | Path, out: str | Path) -> OutputCheck:
     """Compensate ``src`` into ``out`` and judge the output on the simulator (single stream files)."""
-    ref = concat_blocks(sample_gcode(str(src), profile, overlap=0))
+    from ..gcode.start import resolve_start
+
+    start = resolve_start(str(src), profile).position_mm  # where the compensation's plan starts
+    ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start))
     dt = ref.t_s[1] - ref.t_s[0]
     # the printer stands still before the file starts: the G-code output uses that time (pre_s) to
     # pre-actuate the first move, so the comparison starts at rest too
@@ -55,7 +58,8 @@ def check_gcode_output(profile, src: str | Path, out: str | Path) -> OutputCheck
     t = np.arange(len(q)) * dt
     ideal = invert(LpvModel.from_profile(profile), q, X, dt).q_cmd
     summ = compensate_file(str(src), str(out), profile)
-    got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True)).q_m[:len(q)]
+    got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True,
+                                     start_position_mm=start)).q_m[:len(q)]
     got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
     sim = DeltaPlant.from_profile(profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
     none, exact, gcode = (evaluate(t, X, sim.xyz_m[r]) for r in range(3))

@@ -89,7 +89,8 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         flush()
 
     last = None
-    for last in GcodePlan(path, profile, lenient=True):
+    start = tuple(summ.start_mm or (0.0, 0.0, 0.0))  # the plan's start (ffcomp.gcode.start)
+    for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0)):
         buf.append(last)
         if len(buf) >= 5000:
             flush_moves()
