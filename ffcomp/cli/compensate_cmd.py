@@ -196,6 +196,10 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
             t.add_row(label, f.format(v))
     if d.get("rms_before_um") and d.get("rms_after_um") is not None:
         t.add_row("predicted reduction", f"{(1 - d['rms_after_um'] / d['rms_before_um']) * 100:.1f} %")
+    if d.get("commands_passed") is not None and "commands_stopped" in d:
+        t.add_row("other lines: passed / baked in / stops / unknown / skipped",
+                  f"{d['commands_passed']} / {d['commands_baked']} / {d['commands_stopped']} / "
+                  f"{d['commands_unknown']} / {d['lines_skipped']}")
     if "warnings" in d:
         t.add_row("warnings", f"{d['warnings']}" + ("  (listed below)" if d.get("notes") else ""))
     if d.get("stale_temps_removed"):
