@@ -28,7 +28,10 @@ import numpy as np
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 
-__all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES"]
+__all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
+
+#: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream
+SEG_COLS = 5
 
 #: ModeChange names whose effect is baked into the output (the line is commented out)
 BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
@@ -119,6 +122,7 @@ class GcodeWriter:
         #: self-check: int64 rows written to ``segment_table`` (a binary file, so memory stays
         #: bounded); not recorded without one
         self.segment_table = segment_table
+        self.stream = -1  # compensation stream of the samples being written (a homing starts one)
         self._write = out.write
 
     def _w(self, text: str) -> None:
@@ -167,8 +171,9 @@ class GcodeWriter:
         n = len(xyz_mm)
         if n == 0:
             return
-        if self.last_pt is None:
+        if self.last_pt is None:  # a new stream (the start, or after a homing)
             self.last_pt, self.last_k, self.e_last_ref = xyz_mm[0].copy(), k0, float(e_mm[0])
+            self.stream += 1
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()
         ends = np.concatenate([cut, [n]]).tolist()
@@ -328,7 +333,8 @@ class GcodeWriter:
             ch.run_lines[r] = (int(ends[m_] - cnt[m_]), int(ends[m_]))
         local = np.arange(len(i)) - (ends - cnt)[srun] + 1  # line of the segment within its run
         cu = catch[srun] & (i == offs[srun])
-        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64)], 1)[moving].astype(np.int64)
+        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64), np.full(len(i), self.stream)],
+                               1)[moving].astype(np.int64)
         ch.seg_run = run_ids[srun][moving]
         self.last_pt = Pr[last[-1]].copy()
         return ch
@@ -418,7 +424,7 @@ class _Chunk:
         self.lines: list[str] = []
         self.run_lines = [(0, 0)] * n_runs
         self.extrude_de = [0.0] * n_runs
-        self.seg_rows = np.zeros((0, 4), np.int64)
+        self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
 
 

@@ -99,6 +99,11 @@ class CompensationSummary:
     peak_command_accel_mm_s2: float = 0.0
     warnings: int = 0
     notes: list = field(default_factory=list)
+    #: the self-check on the absolute clock: largest lateness of a re-planned segment end against
+    #: the intended command timeline (ms, signed), where (s), and at the end of the file (ms)
+    self_check_drift_ms: float | None = None
+    self_check_drift_at_s: float | None = None
+    self_check_drift_end_ms: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -10,9 +10,11 @@ import numpy as np
 from ..errors import SelfCheckError
 from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
+from ..gcode.writer import SEG_COLS
 from ..kinematics import inverse
 
 __all__ = ["self_check"]
+_DEBUG: list = []
 
 
 def self_check(path: str, qfile: str, profile, geom, summ, opts,
@@ -56,8 +58,10 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         batch_cu.clear()
 
     scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
-                         "decel_t_s")
+                         "decel_t_s", "t_start_s")
     buf: list = []
+    anchor: dict[int, float] = {}  # stream -> print time of its sample 0 in the re-planned output
+    drift = {"max": 0.0, "at": 0.0, "end": 0.0}
 
     def flush_moves():
         if not buf:
@@ -75,16 +79,34 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
         ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
         R, geo, j = R[ok], geo[ok], j[ok]
-        ka, kb, cu = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool)
+        if not len(R):
+            return
+        ka, kb, cu, stream = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool), tab[j, 4]
+        dur = R[:, 4] + R[:, 5] + R[:, 6]
+        t0 = R[:, 7]
+        # the absolute clock: a stream's sample k is due at anchor + k dt, the anchor being where the
+        # re-planned output starts the stream's first segment
+        for s_ in np.unique(stream).tolist():
+            if s_ not in anchor:
+                first = int(np.argmax(stream == s_))
+                anchor[s_] = float(t0[first] - ka[first] * dt)
+        c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
+            np.full(len(R), next(iter(anchor.values())))
+        late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
+        _DEBUG.append(np.stack([kb * dt, late, R[:, 0]], 1))
+        i = int(np.argmax(np.abs(late)))
+        if abs(late[i]) > abs(drift["max"]):
+            drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
+        drift["end"] = float(late[-1])
         cnt = kb - ka
         idx = np.repeat(np.arange(len(R)), cnt)
         k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
-        dur = R[:, 4] + R[:, 5] + R[:, 6]
-        tau = np.minimum(k * dt, dur[idx])
+        kk = ka[idx] + k
+        tau = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
         s_ = _distance_v(R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5], tau)
         P = geo[idx, :3] + s_[:, None] * geo[idx, 3:]
         batch_pos.append(P)
-        batch_k.append(ka[idx] + k)
+        batch_k.append(kk)
         batch_cu.append(cu[idx])
         flush()
 
@@ -101,6 +123,9 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
     summ.self_check_catch_up_max_um = worst_cu * 1e6
+    summ.self_check_drift_ms = drift["max"] * 1e3
+    summ.self_check_drift_at_s = drift["at"]
+    summ.self_check_drift_end_ms = drift["end"] * 1e3
     if worst_cu * 1e6 > 4 * opts.self_check_tol_um:
         raise SelfCheckError(
             f"self-check failed: a catch-up after an extruder-only move or dwell strays {worst_cu * 1e6:.1f} um "
@@ -118,15 +143,15 @@ class _SegmentTable:
     def __init__(self, path: str | None, head_len: int):
         self.f = open(path, "rb") if path else None
         self.head_len = head_len
-        self.buf = np.zeros((0, 4), np.int64)
+        self.buf = np.zeros((0, SEG_COLS), np.int64)
 
     def upto(self, line: int) -> np.ndarray:
         """Rows of output lines ``<= line`` not returned before (lines shifted by the header)."""
         while self.f is not None and (not len(self.buf) or self.buf[-1, 0] <= line):
-            raw = self.f.read(32 * 65536)
+            raw = self.f.read(8 * SEG_COLS * 65536)
             if not raw:
                 break
-            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, 4).copy()
+            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, SEG_COLS).copy()
             rows[:, 0] += self.head_len
             self.buf = np.concatenate([self.buf, rows])
         n = int(np.searchsorted(self.buf[:, 0], line, side="right"))
