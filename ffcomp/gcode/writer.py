@@ -25,6 +25,8 @@ from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
+from .chain_plan import ChainLimits
+from .feed_solve import TimingState, solve_feeds
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 
@@ -99,7 +101,7 @@ class GcodeWriter:
     def __init__(self, lines: Iterator[GcodeLine], out: IO[str], dt_s: float, tol_mm: float,
                  moves: dict[int, PlannedMove], accel_mm_s2: float = float("inf"),
                  max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf"),
-                 segment_table: IO[bytes] | None = None):
+                 segment_table: IO[bytes] | None = None, chain_limits: ChainLimits | None = None):
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
@@ -123,6 +125,10 @@ class GcodeWriter:
         #: bounded); not recorded without one
         self.segment_table = segment_table
         self.stream = -1  # compensation stream of the samples being written (a homing starts one)
+        #: Klipper's limits for the closed-loop feed solve (None: the per-segment solve, for Marlin)
+        self.chain = chain_limits
+        self.timing = TimingState()
+        self.pend_late_s = 0.0  # lateness of extruder-only moves and dwells not yet absorbed
         self._write = out.write
 
     def _w(self, text: str) -> None:
@@ -241,8 +247,15 @@ class GcodeWriter:
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
         follows_hold = np.zeros(R, bool)
+        # an extruder-only move or dwell lasts its planned time, which starts and ends between
+        # samples: the difference from the samples it spans is lateness the next segment must absorb
+        pend, run_pre = self.pend_late_s, np.zeros(R)
         for r, (a, b, _, mv, kind, _) in enumerate(runs):
+            if kind != MOVE and mv is not None:
+                first = mv.index not in self.done_moves
+                pend += (mv.duration_s if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:
+                run_pre[r], pend = pend, 0.0
                 run_ids.append(r)
                 a_s.append(a)
                 n_s.append(b - a + 1)
@@ -259,6 +272,7 @@ class GcodeWriter:
                 after_hold = True
             last_k, e_last = k0 + b - 1, float(E[b - 1])
         self.after_hold = after_hold
+        self.pend_late_s = pend
         self.last_k, self.e_last_ref = last_k, e_last
         if not run_ids:
             self._extrusion(ch, np.zeros(0), np.zeros(0, np.int64), ext_de, ext_runs)
@@ -295,7 +309,14 @@ class GcodeWriter:
         hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
         de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         first_seg = np.r_[True, srun[1:] != srun[:-1]]
-        v = self._firmware_feeds(d, dist, dt, hold, first_seg & follows_hold[run_ids[srun]])
+        stop_first = first_seg & follows_hold[run_ids[srun]]
+        if self.chain is not None:
+            pre = np.where(first_seg, run_pre[run_ids[srun]], 0.0)
+            v = solve_feeds(self.chain, self.timing, Pr[i], Pr[j], dt, de, hold, stop_first,
+                            open_end=runs[-1].kind == MOVE, pre_late=pre)
+        else:
+            v = self._firmware_feeds(d, dist, dt, hold, stop_first)
+            v = np.where(hold, np.maximum(np.abs(de) / dt, 1e-3), v)
         if runs[-1].kind != MOVE:
             self.f_last = 0.0
         # ---- statistics
@@ -314,14 +335,15 @@ class GcodeWriter:
             self.prev_v = vv[-1]
         # ---- the lines (one per segment) and the self-check's table
         xs, ys, zs = Pr[j].T.tolist()
+        pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms
         lines = []
         app = lines.append
         for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), dt.tolist()):
             if h:
                 if abs(e) > 1e-9:
-                    app(f"G1 E{e:.5f} F{max(abs(e) / t, 1e-3) * 60:.1f}\n")
+                    app(f"G1 E{e:.5f} F{f:.3f}\n")
                 else:
-                    app(f"G4 P{t * 1000:.0f}\n")
+                    app(f"G4 P{t * 1000:{pfmt}}\n")
             elif abs(e) > 1e-9:
                 app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.3f}\n")
             else:
@@ -362,7 +384,7 @@ class GcodeWriter:
         return out[: len(seg_run)]
 
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
-        self._w(f"G4 P{mv.cruise_t_s * 1000:.0f}\n")
+        self._w(f"G4 P{mv.cruise_t_s * 1000:{'.0f' if self.chain is None else '.3f'}}\n")
 
     def _firmware_feeds(self, d, dist, dt, hold, stop_before) -> np.ndarray:
         """Feed rates that make the firmware's trapezoids last the intended durations.

@@ -21,6 +21,7 @@ import numpy as np
 from ..compensate.inverse import InverseConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
+from ..gcode.chain_plan import ChainLimits
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
@@ -187,7 +188,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             accel = header_accel(profile, opts)
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
-                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf)
+                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
+                                 chain_limits=(ChainLimits(profile, accel, opts.corner_velocity_mm_s)
+                                               if plan.firmware == "klipper" else None))
             pred = Predictor(model, dt) if opts.predict else None
             k_written = 0
             last_qc = None
