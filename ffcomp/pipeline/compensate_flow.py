@@ -47,7 +47,9 @@ class CompensateOptions:
     z_mode : ``keep`` (emit the compensated z of every point) or ``hold`` (keep z at the planned z
         wherever the plan holds it: no z motion on layer moves, for firmware with a low max_z_accel)
     self_check : re-plan the output and compare with the intended commands
-    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres
+    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres (at least
+        3 x tol_um)
+    self_check_drift_ms : largest allowed drift of the re-planned output on the absolute clock, ms
     predict : predict the residual vibration before/after with the LPV model for the summary
     lenient : malformed G-code lines become counted warnings
     accel_factor : the header's ACCEL is this times the profile's max_accel (at least 100,000 mm/s^2):
@@ -70,6 +72,8 @@ class CompensateOptions:
     corner_velocity_mm_s: float = 100.0
     block_len: int = 4096
     inverse: InverseConfig = field(default_factory=InverseConfig)
+    #: the self-check fails when the re-planned output runs more than this off the intended clock, ms
+    self_check_drift_ms: float = 50.0
 
 
 @dataclass
@@ -105,6 +109,8 @@ class CompensationSummary:
     self_check_drift_ms: float | None = None
     self_check_drift_at_s: float | None = None
     self_check_drift_end_ms: float | None = None
+    #: largest carriage deviation from the intended commands at the same absolute time, um
+    self_check_abs_max_um: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
