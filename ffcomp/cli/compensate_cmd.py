@@ -104,6 +104,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "self_check_max_um": ("self-check: max deviation of re-planned carriages", "{:.1f} um"),
         "self_check_rms_um": ("self-check: RMS deviation", "{:.2f} um"),
         "self_check_catch_up_max_um": ("self-check: max deviation in catch-ups after holds", "{:.1f} um"),
+        "self_check_drift_ms": ("self-check: largest drift on the absolute clock", "{:+.3f} ms"),
+        "self_check_abs_max_um": ("self-check: max deviation at the same absolute time", "{:.1f} um"),
         "header_accel_mm_s2": ("firmware ACCEL the output sets", "{:.0f} mm/s^2"),
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
@@ -118,3 +120,5 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
     if d.get("rms_before_um") and d.get("rms_after_um") is not None:
         t.add_row("predicted reduction", f"{(1 - d['rms_after_um'] / d['rms_before_um']) * 100:.1f} %")
     err_console.print(t) if to_stderr else __import__("rich").get_console().print(t)
+    for note in d.get("notes") or []:
+        (err_console if to_stderr else __import__("rich").get_console()).print(f"note: {note}", markup=False)

@@ -77,6 +77,10 @@ class WriterStats:
     holds: int = 0
     peak_speed_mm_s: float = 0.0
     peak_accel_mm_s2: float = 0.0
+    #: largest ``accel * |dz| / d`` between segments: the max_z_accel the intended timing needs
+    peak_z_accel_mm_s2: float = 0.0
+    #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
+    peak_z_velocity_mm_s: float = 0.0
     extruded_mm: float = 0.0
     notes: list = field(default_factory=list)
 
@@ -332,6 +336,10 @@ class GcodeWriter:
             if len(vv) > 1:
                 acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[moving][-len(vv) + 1:], self.dt)
                 self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
+                sp = np.linalg.norm(vv[1:], axis=1)
+                uz = np.abs(vv[1:, 2]) / np.maximum(sp, 1e-12)
+                self.stats.peak_z_accel_mm_s2 = max(self.stats.peak_z_accel_mm_s2, float(np.max(acc * uz)))
+                self.stats.peak_z_velocity_mm_s = max(self.stats.peak_z_velocity_mm_s, float(np.max(sp * uz)))
             self.prev_v = vv[-1]
         # ---- the lines (one per segment) and the self-check's table
         xs, ys, zs = Pr[j].T.tolist()

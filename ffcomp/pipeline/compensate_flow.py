@@ -28,7 +28,7 @@ from ..gcode.sampler import sample_blocks
 from ..gcode.writer import GcodeWriter
 from ..kinematics import carriage_rates, forward, inverse
 from ..model.lpv import LpvModel
-from .header import header_accel, header_lines
+from .header import firmware_needs, header_accel, header_lines, limit_warnings
 from .predictor import Predictor
 from .self_check import self_check
 
@@ -251,7 +251,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
-        head, foot = header_lines(profile, opts, src, accel)
+        needs = firmware_needs(profile, opts, accel, writer.stats)
+        summ.notes.extend(limit_warnings(profile, needs) if plan.firmware == "klipper" else [])
+        head, foot = header_lines(profile, opts, src, accel, needs)
         final_fd, final_tmp = tempfile.mkstemp(prefix=".ffcomp-out-", suffix=".gcode", dir=out_dir)
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", newline="") as fo, open(body_path, encoding="utf-8") as fb:

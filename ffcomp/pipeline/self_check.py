@@ -111,9 +111,10 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         idx = np.repeat(np.arange(len(R)), cnt)
         k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
         kk = ka[idx] + k
-        # the shape: each segment from its own start (the limit applies to this); the absolute
-        # clock: where the output is when the command is due (drift included; reported)
-        tau_own = np.minimum(k * dt, dur[idx])
+        # the shape: each segment at the same share of its own duration (the limit applies to
+        # this; the timing is the drift's business); the absolute clock: where the output is when
+        # the command is due (drift included; reported)
+        tau_own = k / cnt[idx] * dur[idx]
         tau_abs = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
         a_, v0, vc, ta, tc = R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5]
         P = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_own)[:, None] * geo[idx, 3:]
