@@ -80,7 +80,8 @@ def main() -> None:
                 print(f"| {name} | failed: {type(e).__name__}: {str(e)[:80]} |||||||")
                 continue
             n, e, g = c.none, c.exact, c.gcode
-            print(f"| {name} | {e.lag.rms_norm_um / n.lag.rms_norm_um:.3f} | {g.lag.rms_norm_um / n.lag.rms_norm_um:.3f} "
+            nl = n.lag.rms_norm_um
+            print(f"| {name} | {e.lag.rms_norm_um / nl:.3f} | {g.lag.rms_norm_um / nl:.3f} "
                   f"| {e.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | "
                   f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
                   f"{c.kept('contour'):.2f} | {c.summary.self_check_drift_ms:+.3f} |", flush=True)
