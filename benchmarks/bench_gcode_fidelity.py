@@ -46,7 +46,7 @@ def files(quick: bool) -> dict[str, str]:
         z += ["G1 Z25 F6000", "G1 Z5", "G1 X10 Y0 Z8", "G1 X0 Y0 Z5"]
     out = {
         "square 60 mm, 150 mm/s, layers": _file(ms.ACCEL_10K, ms.stress_square(0, 0, layers=layers, laps=1)),
-        "square 60 mm @ (100,0)": _file(ms.ACCEL_10K, ms.stress_square(100.0, 0, layers=layers, laps=1)),
+        "square 40 mm @ (80,0)": _file(ms.ACCEL_10K, ms.stress_square(80.0, 0, side=40.0, layers=layers, laps=1)),
         "circle 64 seg, 200 mm/s, 5000": _file(["SET_VELOCITY_LIMIT ACCEL=5000", "M204 S5000"],
                                                ms.stress_circle(layers=layers, laps=1, feed=12000)),
         "zig-zag 250 mm/s": _file(["SET_VELOCITY_LIMIT VELOCITY=300 ACCEL=10000", "M204 S10000"],
@@ -59,23 +59,36 @@ def files(quick: bool) -> dict[str, str]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="shorter files")
+    ap.add_argument("--z-mode", default=None, help="CompensateOptions.z_mode (default: the default)")
+    ap.add_argument("--pin-holds", default=None, choices=["0", "1"], help="CompensateOptions.pin_holds")
+    ap.add_argument("--only", default=None, help="only files whose name contains this")
+    ap.add_argument("--profiles", default="default,other_delta")
     a = ap.parse_args()
     profiles = {"default": (default_profile(), None),
                 "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
                                 load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
     tmp = Path(tempfile.mkdtemp(prefix="bench_fidelity_"))
+    extra = {}
+    if a.z_mode:
+        extra["z_mode"] = a.z_mode
+    if a.pin_holds:
+        extra["pin_holds"] = a.pin_holds == "1"
     for pname, (prof, truth) in profiles.items():
+        if pname not in a.profiles.split(","):
+            continue
         print(f"\n### {pname}\n")
         print("| file | exact lag | G-code lag | exact contour | G-code contour | kept lag | kept contour "
               "| drift max (ms) |")
         print("|---|---|---|---|---|---|---|---|")
         for name, text in files(a.quick).items():
+            if a.only and a.only not in name:
+                continue
             src = tmp / "in.gcode"
             src.write_text(text)
             try:
                 c = check_gcode_output(prof, src, tmp / "out.gcode", plant_profile=truth,
                                        opts=CompensateOptions(predict=False, self_check_tol_um=1e9,
-                                                              self_check_drift_ms=1e9))
+                                                              self_check_drift_ms=1e9, **extra))
             except Exception as e:  # a failing case is a row, not the end of the table
                 print(f"| {name} | failed: {type(e).__name__}: {str(e)[:80]} |||||||")
                 continue

@@ -119,7 +119,7 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
     D : (n,) intended durations, s
     de : (n,) extrusion of each segment, mm
     hold : (n,) segments written as ``G4`` or extruder-only lines (the firmware stops there); their
-        value is the extruder feed
+        value is the extruder feed (mm/s), or for a ``G4`` its duration (s)
     stop_first : (n,) the firmware stands still before this segment (an extruder-only move or a
         dwell was written just before it)
     open_end : bool
@@ -202,9 +202,12 @@ def _close_tail(lim: ChainLimits, st: TimingState) -> None:
 
 
 def _hold(lim: ChainLimits, st: TimingState, de: float, D: float) -> float:
-    """A hold segment: ``G4`` (exact) or an extruder-only move timed as Klipper runs it."""
+    """A hold segment: a ``G4`` (returns its duration, s: a rest gives back any lateness) or an
+    extruder-only move timed as Klipper runs it (returns its feed, mm/s)."""
     if abs(de) <= 1e-9:
-        return 0.0
+        dwell = max(D - st.late_s, 0.0)
+        st.late_s += dwell - D
+        return dwell
     want = max(D - st.late_s, MIN_SHARE * D)
     v = float(extrude_only_feed(np.array([de]), np.array([want]), lim.max_e_accel, lim.max_e_velocity)[0])
     t = float(_extrude_only_time(np.array([de]), np.array([v]), lim.max_e_accel)[0])

@@ -170,8 +170,10 @@ class GcodeWriter:
 
     # ------------------------------------------------------------------ samples
     def feed(self, k0: int, xyz_mm: np.ndarray, e_mm: np.ndarray, move_index: np.ndarray,
-             lineno: np.ndarray) -> None:
+             lineno: np.ndarray, dense: np.ndarray | None = None) -> None:
         """Compensated nozzle positions of samples ``k0 ..`` with their reference extrusion and move.
+
+        ``dense`` marks samples that each end a segment of their own (no point placement).
 
         The chunk is cut into runs of one planned move.  The numbers of every motion run (point
         placement, extrusion, feed rates) are computed for the whole chunk at once
@@ -193,7 +195,7 @@ class GcodeWriter:
         for a, b, mi, ln in zip(starts, ends, mis, lns):
             mv = self.moves.get(mi)
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
-        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs)
+        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense)
         seg_base = []
         for r, run in enumerate(runs):
             mv, kind, ln = run.move, run.kind, run.lineno
@@ -235,7 +237,8 @@ class GcodeWriter:
             rows[:, 0] += base[chunk.seg_run]
             self.segment_table.write(rows.tobytes())
 
-    def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list) -> "_Chunk":
+    def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list,
+                    dense: np.ndarray | None = None) -> "_Chunk":
         """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.
 
         Each motion run's path starts at the last emitted point; after an extruder-only move or a
@@ -297,6 +300,8 @@ class GcodeWriter:
         keep = np.zeros(total, bool)
         keep[offs] = keep[last] = True
         keep[offs[catch] + 1] = True
+        if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
+            keep |= dense[np.maximum(src, 0)]
         keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
         run_of = np.repeat(np.arange(len(n_s)), n_s)
@@ -320,7 +325,7 @@ class GcodeWriter:
                             open_end=runs[-1].kind == MOVE, pre_late=pre)
         else:
             v = self._firmware_feeds(d, dist, dt, hold, stop_first)
-            v = np.where(hold, np.maximum(np.abs(de) / dt, 1e-3), v)
+            v = np.where(hold, np.where(np.abs(de) > 1e-9, np.maximum(np.abs(de) / dt, 1e-3), dt), v)
         if runs[-1].kind != MOVE:
             self.f_last = 0.0
         # ---- statistics
@@ -346,8 +351,8 @@ class GcodeWriter:
         pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms
         lines = []
         app = lines.append
-        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), dt.tolist()):
-            if h:
+        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), v.tolist()):
+            if h:  # a hold's value: the extruder's feed, or the dwell's duration
                 if abs(e) > 1e-9:
                     app(f"G1 E{e:.5f} F{f:.3f}\n")
                 else:

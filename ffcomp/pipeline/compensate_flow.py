@@ -21,7 +21,7 @@ import numpy as np
 from ..compensate.inverse import InverseConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
-from ..gcode.chain_plan import ChainLimits
+from ..gcode.chain_plan import ChainLimits, segment_limits
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
@@ -33,6 +33,9 @@ from .predictor import Predictor
 from .self_check import self_check
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel"]
+
+#: the z modes (see :class:`CompensateOptions`)
+Z_MODES = ("keep", "hold", "auto")
 
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3
@@ -74,6 +77,8 @@ class CompensateOptions:
     inverse: InverseConfig = field(default_factory=InverseConfig)
     #: the self-check fails when the re-planned output runs more than this off the intended clock, ms
     self_check_drift_ms: float = 50.0
+    #: moves whose firmware limits bind (see :class:`LimitBound`) follow the plan instead
+    plan_where_limited: bool = True
 
 
 @dataclass
@@ -111,6 +116,8 @@ class CompensationSummary:
     self_check_drift_end_ms: float | None = None
     #: largest carriage deviation from the intended commands at the same absolute time, um
     self_check_abs_max_um: float | None = None
+    #: samples written from the plan (uncompensated) because the firmware's limits bind there
+    plan_fallback_samples: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -164,8 +171,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     source is replaced only after the whole output, header and self-check are done).
     """
     t_wall = time.perf_counter()
-    if opts.z_mode not in ("keep", "hold"):
-        raise ValueError(f"z_mode must be 'keep' or 'hold', got {opts.z_mode!r}")
+    if opts.z_mode not in Z_MODES:
+        raise ValueError(f"z_mode must be one of {', '.join(Z_MODES)}, got {opts.z_mode!r}")
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
@@ -198,6 +205,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                  chain_limits=(ChainLimits(profile, accel, opts.corner_velocity_mm_s)
                                                if plan.firmware == "klipper" else None))
             pred = Predictor(model, dt) if opts.predict else None
+            bound = (LimitBound(ChainLimits(profile, accel, opts.corner_velocity_mm_s))
+                     if opts.plan_where_limited and plan.firmware == "klipper" else None)
             k_written = 0
             last_qc = None
 
@@ -209,10 +218,21 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                     raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
                                          f"nozzle position (carriages {qc[bad] * 1e3} mm)")
                 fix = np.zeros(len(xyz), bool)
-                if opts.z_mode == "hold":
-                    hold = _z_held(meta["move_index"], moves)
+                if opts.z_mode in ("hold", "auto"):
+                    hold = (_z_held if opts.z_mode == "hold" else _z_moving)(meta["move_index"], moves)
                     xyz[hold, 2] = meta["xyz"][hold, 2]
                     fix |= hold
+                # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
+                # zones) cannot take a command that accelerates harder than the plan: they follow
+                # the plan, sample by sample, so the clock holds (counted in the summary)
+                dense = None
+                if bound is not None:
+                    w = bound.weights(meta["move_index"], moves)
+                    dense = w > 0
+                    if dense.any():
+                        xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
+                        fix |= dense
+                        summ.plan_fallback_samples += int(np.sum(w >= 1.0))
                 # the firmware refuses positions outside its limits: a correction that pokes past
                 # them (at z_max after homing, at the rim) is clamped to the boundary
                 cl = _clamp_to_workspace(xyz, geom)
@@ -232,7 +252,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                     if new_stream:
                         pred.reset()
                     pred.push(qc, meta["q"], meta["xyz"])
-                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"])
+                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense)
                 k_written += len(qc)
                 last_qc = qc[-1].copy()
                 if progress is not None:
@@ -392,6 +412,65 @@ def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
 def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
     """Samples whose planned move keeps z constant."""
     return _moves_where(move_index, moves, lambda mv: abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9)
+
+
+class LimitBound:
+    """Which planned moves the extruder's limits bind: moves that extrude without XY travel or
+    retract while moving, whose acceleration cap ``max_extrude_only_accel * d/|de|`` is within
+    ``factor`` of the acceleration the plan already uses, so a compensated command (which
+    accelerates harder than the plan) cannot run on time there.  (Moves bound by ``max_z_accel``
+    stay compensated: their lateness is recovered by the feed solve and reported.)"""
+
+    def __init__(self, lim: ChainLimits, factor: float = 4.0):
+        self.lim, self.factor = lim, factor
+        self.cache: dict[int, bool] = {}
+
+    def bound(self, mv) -> bool:
+        b = self.cache.get(mv.index)
+        if b is None:
+            b = False
+            if mv.kind == "move" and (mv.accel_t_s > 0 or mv.decel_t_s > 0):
+                s0, s1 = np.array([mv.start_mm[:3]]), np.array([mv.end_mm[:3]])
+                lim = self.lim
+                acc_cap = segment_limits(_NoAccel(lim), s0, s1, np.array([mv.end_mm[3] - mv.start_mm[3]]))[1][0]
+                b = bool(acc_cap < self.factor * mv.accel_mm_s2)
+            if len(self.cache) > 4096:
+                self.cache.clear()
+            self.cache[mv.index] = b
+        return b
+
+    def mask(self, move_index: np.ndarray, moves: dict) -> np.ndarray:
+        return _moves_where(move_index, moves, self.bound)
+
+    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> np.ndarray:
+        """Share of the plan in each sample: 1 on bound moves, a raised-cosine blend over ``blend``
+        samples either side (the compensated command pre-actuates a bound move before it starts and
+        settles after it: without the blend the firmware would have to jump)."""
+        m = self.mask(move_index, moves)
+        n = len(m)
+        if not m.any():
+            return np.zeros(n)
+        idx = np.arange(n)
+        on = np.nonzero(m)[0]
+        j = np.searchsorted(on, idx)
+        d_next = np.where(j < len(on), on[np.minimum(j, len(on) - 1)] - idx, n)
+        d_prev = np.where(j > 0, idx - on[np.maximum(j - 1, 0)], n)
+        d = np.minimum(d_next, d_prev).astype(float)
+        return np.where(d < blend, 0.5 * (1.0 + np.cos(np.pi * d / blend)), 0.0)
+
+
+class _NoAccel:
+    """A :class:`ChainLimits` view with only the extruder's caps."""
+
+    def __init__(self, lim):
+        self.__dict__.update(lim.__dict__)
+        self.accel = self.max_velocity = self.max_z_accel = self.max_z_velocity = float("inf")
+        self.slow_xy2 = self.very_slow_xy2 = float("inf")
+
+
+def _z_moving(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move travels in z."""
+    return _moves_where(move_index, moves, lambda mv: abs(mv.end_mm[2] - mv.start_mm[2]) >= 1e-9)
 
 
 def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:
