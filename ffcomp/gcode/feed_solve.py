@@ -70,9 +70,9 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
 
     First every free segment's feed is corrected towards its own intended duration (a few sweeps:
     the junctions couple neighbours only weakly).  Segments that cannot be run in their time (the
-    limits bind) leave lateness, which the segments after them take back, each at most
-    ``1 - MIN_SHARE`` of its duration (a queue recursion, solved in closed form), and a few more
-    sweeps aim every segment at its share.
+    limits bind) leave lateness, which the segments after them take back as fast as they can run
+    (at most ``1 / MIN_SHARE`` times their plain speed; a queue recursion, solved in closed form),
+    and a few more sweeps aim every segment at its share.
     """
     d = P1 - P0
     dist = np.sqrt(np.einsum("ij,ij->i", d, d))
@@ -92,16 +92,16 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         return F
 
     F = sweeps(F0.copy(), D, SWEEPS // 2)
-    t = plan(F)[0]
-    u = t - D
-    # what each segment can give back: none where it is already late on its own (limits bind)
-    cap = np.where(free & (u < 1e-6), (1.0 - MIN_SHARE) * D, 0.0)
-    S = late0 + np.cumsum(u - cap)
-    L = S - np.minimum(0.0, np.minimum.accumulate(S))  # lateness left after each segment
+    # the fastest each segment can run (all free segments at their fastest: the junction rules
+    # and the limits still bind), then the queue recursion for the lateness left after each one
+    # when every late segment runs as fast as it can: L_i = max(0, L_{i-1} + lo_i - D_i)
+    lo = plan(np.where(free, np.minimum(Fmax, vmax), F))[0]
+    S = late0 + np.cumsum(lo - D)
+    L = S - np.minimum(0.0, np.minimum.accumulate(S))
     L_prev = np.concatenate([[late0], L[:-1]])
-    want = np.maximum(D + L - L_prev, MIN_SHARE * D)
+    want = np.maximum(D + L - L_prev, lo)
     if np.any(np.abs(want - D) > 1e-9):
-        F = sweeps(F, np.where(cap > 0, want, t), SWEEPS // 2)
+        F = sweeps(F, want, SWEEPS // 2)
     t, vin, _ = plan(F)
     return F, late0 + np.cumsum(t - D), vin
 
