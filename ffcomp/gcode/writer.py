@@ -313,11 +313,9 @@ class GcodeWriter:
         srun = run_of[i]  # motion run of each segment
         # the firmware sees the printed (rounded) coordinates: durations must come from those
         Pr = np.round(P, 4)
-        d = Pr[j] - Pr[i]
-        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-        hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
-        de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         first_seg = np.r_[True, srun[1:] != srun[:-1]]
+        Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
+        de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
         if self.chain is not None:
             pre = np.where(first_seg, run_pre[run_ids[srun]], 0.0)
@@ -437,6 +435,39 @@ class GcodeWriter:
 
     def finish(self) -> None:
         self.flush_lines(1 << 62)
+
+
+def _settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.ndarray, offs: np.ndarray,
+                  last: np.ndarray):
+    """Segments under a micrometre are written as holds (the firmware would crawl): the nozzle stays
+    where the last written segment left it, so the end point of a hold is its start point, and the
+    next segment (or the next run, which starts where the previous one ended) starts from there;
+    a few vectorised passes settle the cascade.  Returns ``Pr`` (points as written), the segment
+    vectors, lengths and hold flags."""
+    Pr = Pr.copy()
+    n = len(i)
+    for _ in range(6):
+        d = Pr[j] - Pr[i]
+        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        hold = dist < 1e-3
+        if not hold.any():
+            break
+        # the first hold of each group of consecutive holds (within a run) is its root
+        grp_start = hold & (first_seg | ~np.r_[False, hold[:-1]])
+        root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
+        moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
+        if len(offs) > 1:  # a run starts where the previous one ended
+            lead_bad = np.any(Pr[offs[1:]] != Pr[last[:-1]], axis=1)
+        else:
+            lead_bad = np.zeros(0, bool)
+        if not moved.any() and not lead_bad.any():
+            break
+        Pr[j[hold]] = Pr[i[root[hold]]]
+        if len(offs) > 1:
+            Pr[offs[1:]] = Pr[last[:-1]]
+    d = Pr[j] - Pr[i]
+    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return Pr, d, dist, dist < 1e-3
 
 
 class _Run(NamedTuple):
