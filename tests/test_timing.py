@@ -58,7 +58,7 @@ def test_feed_solve_puts_every_segment_end_on_the_intended_clock(profile):
 def test_extrude_only_feed_round_trip():
     de, t = np.array([0.8, 0.05, 2.0]), np.array([0.05, 0.02, 0.1])
     v = fs.extrude_only_feed(de, t, 3000.0, 120.0)
-    np.testing.assert_allclose(fs._extrude_only_time(de, v, 3000.0), t, rtol=1e-9)
+    np.testing.assert_allclose(fs.extrude_only_time(de, v, 3000.0), t, rtol=1e-9)
 
 
 @pytest.fixture(scope="module")

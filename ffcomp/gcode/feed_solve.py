@@ -20,12 +20,14 @@ import numpy as np
 
 from .chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits
 
-__all__ = ["TimingState", "solve_feeds", "extrude_only_feed"]
+__all__ = ["TimingState", "solve_feeds", "extrude_only_feed", "extrude_only_time"]
 
 #: written segments kept open for the next chunk's plan
 TAIL = 48
 #: sweeps of the feed correction
 SWEEPS = 8
+#: rounds of handing lateness on to the segments after one that could not take its share
+RECOVERY_ROUNDS = 3
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -58,7 +60,8 @@ def extrude_only_feed(de: np.ndarray, t: np.ndarray, accel: float, vmax: float) 
     return np.clip(v, 1e-3, vmax)
 
 
-def _extrude_only_time(de, v, accel):
+def extrude_only_time(de: np.ndarray, v: np.ndarray, accel: float) -> np.ndarray:
+    """Duration (s) of extruder-only moves of ``|de|`` at feed ``v`` from rest to rest."""
     L = np.abs(de)
     v = np.minimum(v, np.sqrt(accel * L))
     return L / v + v / accel
@@ -91,25 +94,42 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
             F = np.where(free, np.clip(F * t / want, 1e-3, Fmax), F)
         return F
 
-    F = sweeps(F0.copy(), D, SWEEPS // 2)
+    # ahead of the clock on entry (an extruder-only move written faster than planned): the first
+    # free segment waits it out
+    wantA = D.copy()
+    if late0 < 0 and free.any():
+        k = int(np.argmax(free))
+        wantA[k] -= late0
+    F = sweeps(F0.copy(), wantA, SWEEPS // 2)
     # the fastest each segment can run (all free segments at their fastest: the junction rules
     # and the limits still bind), then the queue recursion for the lateness left after each one
     # when every late segment runs as fast as it can: L_i = max(0, L_{i-1} + lo_i - D_i)
     lo = plan(np.where(free, np.minimum(Fmax, vmax), F))[0]
-    S = late0 + np.cumsum(lo - D)
-    L = S - np.minimum(0.0, np.minimum.accumulate(S))
-    L_prev = np.concatenate([[late0], L[:-1]])
-    want = np.maximum(D + L - L_prev, lo)
-    if np.any(np.abs(want - D) > 1e-9):
-        # keep the recovery only where it helps: the junctions couple the segments, so the
-        # fastest durations are estimates
-        FB = sweeps(F, want, SWEEPS // 2)
 
-        def cost(F_):
-            return float(np.sum((late0 + np.cumsum(plan(F_)[0] - D)) ** 2))
+    def cost(F_):
+        return float(np.sum((late0 + np.cumsum(plan(F_)[0] - D)) ** 2))
 
-        if cost(FB) < cost(F):
-            F = FB
+    best, best_cost = F, cost(F)
+    for _ in range(RECOVERY_ROUNDS):
+        S = late0 + np.cumsum(lo - D)
+        L = S - np.minimum(0.0, np.minimum.accumulate(S))
+        L_prev = np.concatenate([[late0], L[:-1]])
+        want = np.maximum(D + L - L_prev, lo)
+        if not np.any(np.abs(want - D) > 1e-9):
+            break
+        FB = sweeps(best, want, SWEEPS // 2)
+        t = plan(FB)[0]
+        c = cost(FB)
+        # keep the recovery only where it helps (the junctions couple the segments, so the
+        # fastest durations are estimates); a segment that fell short of its share was slower
+        # than estimated: the next round hands the rest on
+        if c < best_cost:
+            best, best_cost = FB, c
+        short = free & (t > want * (1 + 1e-3) + 1e-7)
+        if not short.any():
+            break
+        lo = np.where(short, np.maximum(lo, t), lo)
+    F = best
     t, vin, _ = plan(F)
     return F, late0 + np.cumsum(t - D), vin
 
@@ -218,6 +238,6 @@ def _hold(lim: ChainLimits, st: TimingState, de: float, D: float) -> float:
         return dwell
     want = max(D - st.late_s, MIN_SHARE * D)
     v = float(extrude_only_feed(np.array([de]), np.array([want]), lim.max_e_accel, lim.max_e_velocity)[0])
-    t = float(_extrude_only_time(np.array([de]), np.array([v]), lim.max_e_accel)[0])
+    t = float(extrude_only_time(np.array([de]), np.array([v]), lim.max_e_accel)[0])
     st.late_s += t - D
     return v

@@ -26,11 +26,14 @@ from typing import IO, Iterator, NamedTuple
 import numpy as np
 
 from .chain_plan import ChainLimits
-from .feed_solve import TimingState, solve_feeds
+from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
+
+#: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
+EXTRUDE_SPARE_S = 3e-3
 
 #: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream
 SEG_COLS = 5
@@ -208,8 +211,8 @@ class GcodeWriter:
                     self.nlines += s1 - s0
             elif mv.index not in self.done_moves:
                 if kind == EXTRUDE:
-                    speed = max(mv.cruise_v_mm_s, 1e-3)
-                    self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.1f}\n")
+                    speed = chunk.extrude_v[r] or max(mv.cruise_v_mm_s, 1e-3)
+                    self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.3f}\n")
                     self.stats.extrude_moves += 1
                 else:
                     self._dwell(mv, ln)
@@ -260,7 +263,10 @@ class GcodeWriter:
         for r, (a, b, _, mv, kind, _) in enumerate(runs):
             if kind != MOVE and mv is not None:
                 first = mv.index not in self.done_moves
-                pend += (mv.duration_s if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
+                dur = mv.duration_s
+                if first and kind == EXTRUDE and self.chain is not None:
+                    dur = self._fast_extrude(ch, r, mv)
+                pend += (dur if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:
                 run_pre[r], pend = pend, 0.0
                 run_ids.append(r)
@@ -394,6 +400,18 @@ class GcodeWriter:
             ch.extrude_de[r] = float(out[len(seg_run) + m_])
         return out[: len(seg_run)]
 
+    def _fast_extrude(self, ch, r: int, mv: PlannedMove) -> float:
+        """Write an extruder-only move up to ``EXTRUDE_SPARE_S`` faster than planned (within the
+        extruder's limits): the command moved on while the nozzle had to stand, and the segment
+        after the move catches up in the time saved.  Returns the written move's duration."""
+        de = np.array([mv.end_mm[3] - mv.start_mm[3]])
+        lim = self.chain
+        want = np.array([max(mv.duration_s - EXTRUDE_SPARE_S, 1e-4)])
+        v = extrude_only_feed(de, want, lim.max_e_accel, lim.max_e_velocity)
+        v = np.maximum(v, mv.cruise_v_mm_s)
+        ch.extrude_v[r] = float(np.round(v[0] * 60, 3) / 60)
+        return float(extrude_only_time(de, np.array([ch.extrude_v[r]]), lim.max_e_accel)[0])
+
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
         self._w(f"G4 P{mv.cruise_t_s * 1000:{'.0f' if self.chain is None else '.3f'}}\n")
 
@@ -484,12 +502,13 @@ class _Run(NamedTuple):
 class _Chunk:
     """The writer's numbers for one chunk (see :meth:`GcodeWriter._plan_chunk`)."""
 
-    __slots__ = ("lines", "run_lines", "extrude_de", "seg_rows", "seg_run")
+    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run")
 
     def __init__(self, n_runs: int):
         self.lines: list[str] = []
         self.run_lines = [(0, 0)] * n_runs
         self.extrude_de = [0.0] * n_runs
+        self.extrude_v = [0.0] * n_runs  # feed of an extruder-only move written faster (0: as planned)
         self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
 

@@ -227,12 +227,13 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 # the plan, sample by sample, so the clock holds (counted in the summary)
                 dense = None
                 if bound is not None:
-                    w = bound.weights(meta["move_index"], moves)
-                    dense = w > 0
+                    w, wz = bound.weights(meta["move_index"], moves)
+                    dense = (w > 0) | (wz > 0)
                     if dense.any():
                         xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
+                        xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
                         fix |= dense
-                        summ.plan_fallback_samples += int(np.sum(w >= 1.0))
+                        summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
                 # the firmware refuses positions outside its limits: a correction that pokes past
                 # them (at z_max after homing, at the rim) is clamped to the boundary
                 cl = _clamp_to_workspace(xyz, geom)
@@ -442,11 +443,25 @@ class LimitBound:
     def mask(self, move_index: np.ndarray, moves: dict) -> np.ndarray:
         return _moves_where(move_index, moves, self.bound)
 
-    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> np.ndarray:
-        """Share of the plan in each sample: 1 on bound moves, a raised-cosine blend over ``blend``
-        samples either side (the compensated command pre-actuates a bound move before it starts and
-        settles after it: without the blend the firmware would have to jump)."""
-        m = self.mask(move_index, moves)
+    def z_after_hold(self, mv, moves: dict) -> bool:
+        """A move with z travel right after an extruder-only move or dwell (a z-hop after a
+        retraction): the compensated command would pre-actuate its z during the hold, which a
+        G-code file cannot move in, and catch up after it at ``max_z_accel``: its z follows the plan."""
+        if mv.kind != "move" or abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9:
+            return False
+        prev = moves.get(mv.index - 1)
+        return prev is not None and prev.kind != "move"
+
+    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> tuple[np.ndarray, np.ndarray]:
+        """Share of the plan in each sample, for all axes and for z alone: 1 on the moves it takes
+        over, a raised-cosine blend over ``blend`` samples either side (the compensated command
+        pre-actuates a move before it starts and settles after it: without the blend the firmware
+        would have to jump)."""
+        return (self._blend(self.mask(move_index, moves), blend),
+                self._blend(_moves_where(move_index, moves, lambda mv: self.z_after_hold(mv, moves)), blend))
+
+    @staticmethod
+    def _blend(m: np.ndarray, blend: int) -> np.ndarray:
         n = len(m)
         if not m.any():
             return np.zeros(n)
