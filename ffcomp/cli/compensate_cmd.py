@@ -24,7 +24,8 @@ def compensate_cmd(
     method: Annotated[str, typer.Option(help="Inverse variant: lpv (default) or lti-centre.")] = "lpv",
     tol_um: Annotated[float, typer.Option("--tol-um", help="G-code point placement tolerance, um.")] = 5.0,
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep: compensated z everywhere; hold: keep planned "
-                                        "z on layer moves (firmware with low max_z_accel).")] = "keep",
+                                        "z on layer moves (firmware with low max_z_accel); auto: planned z on "
+                                        "moves that travel in z.")] = "keep",
     pin_holds: Annotated[bool, typer.Option("--pin-holds/--no-pin-holds", help="Keep the command on the "
                                             "reference during extruder-only moves and dwells.")] = False,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
@@ -48,8 +49,8 @@ def compensate_cmd(
         raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if method not in ("lpv", "lti-centre"):
         raise typer.BadParameter(f"--method must be lpv or lti-centre for files, got {method!r}")
-    if z_mode not in ("keep", "hold"):
-        raise typer.BadParameter(f"--z-mode must be keep or hold, got {z_mode!r}")
+    if z_mode not in ("keep", "hold", "auto"):
+        raise typer.BadParameter(f"--z-mode must be keep, hold or auto, got {z_mode!r}")
     if tol_um <= 0:
         raise typer.BadParameter(f"--tol-um must be > 0, got {tol_um}")
     prof = load_profile_opt(profile)

@@ -7,7 +7,14 @@ the compensated nozzle positions, and every other line kept in place.
 
 * Points are placed adaptively: a segment ends where linear interpolation *in time* (the firmware
   moves a segment at constant speed) would stray from the compensated samples by more than
-  ``tol_mm``; feed rates are length / duration, so timing follows the compensated command.
+  ``tol_mm``.
+* Timing on the absolute clock: with Klipper, the feed rates come from a closed-loop solve
+  (:mod:`ffcomp.gcode.feed_solve`) against Klipper's own plan of the written chain (junction
+  speeds, ramps, ``max_z_accel * d/|dz|``, the extruder's limits), so every segment ends when its
+  sample is due, and lateness a limit forces (a catch-up after a hold) is taken back by the
+  segments after it instead of adding up over the file.  Extruder-only moves and dwells count
+  with their exact durations; a hold (a segment under a micrometre) leaves the nozzle where it
+  was and a ``G4`` gives back lateness.  (Marlin: a per-segment feed solve.)
 * Extrusion follows the reference timing: each segment extrudes ``e_ref(t_end) - e_ref(t_start)``
   (relative extrusion, rounding carried over), so material is laid when the original lays it.
 * Lines whose meaning the compensation has baked in are commented out with ``; ffcomp:``:

@@ -47,8 +47,11 @@ class CompensateOptions:
 
     method : inverse variant (``lpv`` or ``lti-centre`` stream)
     tol_um : point placement tolerance of the G-code writer, micrometres
-    z_mode : ``keep`` (emit the compensated z of every point) or ``hold`` (keep z at the planned z
+    z_mode : ``keep`` (emit the compensated z of every point), ``hold`` (keep z at the planned z
         wherever the plan holds it: no z motion on layer moves, for firmware with a low max_z_accel)
+        or ``auto`` (the planned z on every move that travels in z: z travel runs on the clock at
+        any max_z_accel, uncompensated).  In every mode the z of a z-hop right after an
+        extruder-only move or dwell follows the plan (see ``plan_where_limited``).
     self_check : re-plan the output and compare with the intended commands
     self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres (at least
         3 x tol_um)
@@ -77,7 +80,8 @@ class CompensateOptions:
     inverse: InverseConfig = field(default_factory=InverseConfig)
     #: the self-check fails when the re-planned output runs more than this off the intended clock, ms
     self_check_drift_ms: float = 50.0
-    #: moves whose firmware limits bind (see :class:`LimitBound`) follow the plan instead
+    #: moves the extruder's limits bind, and the z of z-hops right after a hold, follow the plan
+    #: (see :class:`LimitBound`): the firmware could not run the compensated command on time there
     plan_where_limited: bool = True
 
 
