@@ -369,9 +369,9 @@ class GcodeWriter:
                 else:
                     app(f"G4 P{t * 1000:{pfmt}}\n")
             elif abs(e) > 1e-9:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.3f}\n")
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.{3 if f >= 100 else 6}f}\n")
             else:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.3f}\n")
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.{3 if f >= 100 else 6}f}\n")  # slow: a long line
         ch.lines = lines
         cnt = np.bincount(srun, minlength=len(n_s))
         ends = np.cumsum(cnt)
