@@ -123,3 +123,14 @@ def test_simulate_compare_aligns_a_pre_rolled_output(square_runs, profile):
     rep = simulate_gcode(profile, src, compare=out)
     planned, comp = rep.runs[0].report, rep.runs[-1].report
     assert comp.lag.rms_norm_um < 0.3 * planned.lag.rms_norm_um, (comp.lag.rms_norm_um, planned.lag.rms_norm_um)
+
+
+def test_tol_um_is_honoured_by_the_self_check(tmp_path, profile):
+    """A coarse point placement (--tol-um 50) is not failed by a 50 um self-check limit."""
+    from ffcomp.pipeline.self_check import shape_limit_um
+
+    opts = CompensateOptions(tol_um=50.0, predict=False)
+    assert shape_limit_um(opts) == 150.0 and shape_limit_um(CompensateOptions()) == 50.0
+    s = compensate_file(str(ROOT / "samples" / "gcode" / "stress_square.gcode"), str(tmp_path / "o.gcode"),
+                        profile, opts)
+    assert s.self_check_max_um <= 150.0 and (tmp_path / "o.gcode").exists()
