@@ -28,6 +28,10 @@ TAIL = 48
 SWEEPS = 8
 #: rounds of handing lateness on to the segments after one that could not take its share
 RECOVERY_ROUNDS = 3
+#: rounds of waiting out time gained ahead of the clock
+AHEAD_ROUNDS = 3
+#: exponent of the feed update (below 1: damped, for segments coupled through their junctions)
+GAIN = 1.0
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -88,10 +92,12 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         cv2 = np.minimum(F, vmax) ** 2
         return plan_chain(dist, cv2, acc, jv, start_v2, cv2[-1] if end_open else 0.0)
 
-    def sweeps(F, want, n):
+    def sweeps(F, want, n, floor=None):
         for _ in range(n):
             t = plan(F)[0]
-            F = np.where(free, np.clip(F * t / want, 1e-3, Fmax), F)
+            F = np.where(free, np.clip(F * (t / want) ** GAIN, 1e-3, Fmax), F)
+            if floor is not None:  # recovering: never slower than on the plain clock
+                F = np.maximum(F, floor)
         return F
 
     # ahead of the clock on entry (an extruder-only move written faster than planned): the first
@@ -100,7 +106,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     if late0 < 0 and free.any():
         k = int(np.argmax(free))
         wantA[k] -= late0
-    F = sweeps(F0.copy(), wantA, SWEEPS // 2)
+    F = FA = sweeps(F0.copy(), wantA, SWEEPS // 2)
     # the fastest each segment can run (all free segments at their fastest: the junction rules
     # and the limits still bind), then the queue recursion for the lateness left after each one
     # when every late segment runs as fast as it can: L_i = max(0, L_{i-1} + lo_i - D_i)
@@ -117,7 +123,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         want = np.maximum(D + L - L_prev, lo)
         if not np.any(np.abs(want - D) > 1e-9):
             break
-        FB = sweeps(best, want, SWEEPS // 2)
+        FB = sweeps(best, want, SWEEPS // 2, floor=FA)
         t = plan(FB)[0]
         c = cost(FB)
         # keep the recovery only where it helps (the junctions couple the segments, so the
@@ -129,6 +135,20 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         if not short.any():
             break
         lo = np.where(short, np.maximum(lo, t), lo)
+    # ahead of the clock somewhere (a recovery overshot): the first segment of each stretch that
+    # starts ahead waits it out, a few rounds
+    for _ in range(AHEAD_ROUNDS):
+        late_end = late0 + np.cumsum(plan(best)[0] - D)
+        ls = np.concatenate([[late0], late_end[:-1]])
+        ahead = free & (ls < -1e-5)
+        first = ahead & ~np.r_[False, ahead[:-1]]
+        if not first.any():
+            break
+        FC = sweeps(best, np.where(first, D - ls, plan(best)[0]), SWEEPS // 2)
+        c = cost(FC)
+        if c >= best_cost:
+            break
+        best, best_cost = FC, c
     F = best
     t, vin, _ = plan(F)
     return F, late0 + np.cumsum(t - D), vin
