@@ -75,11 +75,16 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     """Feeds of one chain (segments not free keep ``F0``); returns feeds, the lateness at each
     segment end and the entry speeds.
 
-    First every free segment's feed is corrected towards its own intended duration (a few sweeps:
-    the junctions couple neighbours only weakly).  Segments that cannot be run in their time (the
-    limits bind) leave lateness, which the segments after them take back as fast as they can run
-    (at most ``1 / MIN_SHARE`` times their plain speed; a queue recursion, solved in closed form),
-    and a few more sweeps aim every segment at its share.
+    1. Every free segment's feed is corrected towards its own intended duration (a few sweeps:
+       the junctions couple neighbours only weakly); time gained ahead on entry is waited out by
+       the first segment.
+    2. Segments that cannot be run in their time (the limits bind) leave lateness, which the
+       segments after them take back as fast as they can run (at most ``1 / MIN_SHARE`` times
+       their plain speed): the queue recursion ``L_i = max(0, L_{i-1} + lo_i - D_i)`` over the
+       fastest durations ``lo``, solved in closed form; a few sweeps aim every segment at its
+       share; a segment that fell short hands the rest on in the next round.  A round is kept
+       only if it lowers the summed squared lateness.
+    3. Stretches that ended up ahead of the clock (a recovery overshot) are waited out.
     """
     d = P1 - P0
     dist = np.sqrt(np.einsum("ij,ij->i", d, d))
