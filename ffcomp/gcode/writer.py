@@ -139,6 +139,9 @@ class GcodeWriter:
         #: bounded); not recorded without one
         self.segment_table = segment_table
         self.stream = -1  # compensation stream of the samples being written (a homing starts one)
+        #: where the firmware stands when the next stream starts (the plan's point: after a homing,
+        #: the home position), mm; None: the stream's first sample
+        self.stream_start_mm: np.ndarray | None = None
         #: Klipper's limits for the closed-loop feed solve (None: the per-segment solve, for Marlin)
         self.chain = chain_limits
         self.timing = TimingState()
@@ -194,7 +197,9 @@ class GcodeWriter:
         if n == 0:
             return
         if self.last_pt is None:  # a new stream (the start, or after a homing)
-            self.last_pt, self.last_k, self.e_last_ref = xyz_mm[0].copy(), k0, float(e_mm[0])
+            start = self.stream_start_mm if self.stream_start_mm is not None else xyz_mm[0]
+            self.last_pt, self.last_k, self.e_last_ref = np.array(start, float), k0, float(e_mm[0])
+            self.stream_start_mm = None
             self.stream += 1
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()

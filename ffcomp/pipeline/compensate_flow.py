@@ -252,8 +252,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                              float(np.max(np.abs(qc - meta["q"]))) * 1e6)
                 qf.write(qc.astype(np.float32).tobytes())
                 new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
-                if new_stream:  # after a homing the machine stands at the new stream's first point
+                if new_stream or not k_written:  # the machine stands where the plan starts the stream
                     writer.last_pt = None
+                    writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
                 if pred is not None:
                     if new_stream:
                         pred.reset()
