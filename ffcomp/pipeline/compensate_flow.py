@@ -232,7 +232,6 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 dense = None
                 if bound is not None:
                     w, wz = bound.weights(meta["move_index"], moves)
-                    wz = np.maximum(wz, bound.z_over_limit(xyz, dt))
                     dense = (w > 0) | (wz > 0)
                     if dense.any():
                         xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
@@ -465,17 +464,6 @@ class LimitBound:
         would have to jump)."""
         return (self._blend(self.mask(move_index, moves), blend),
                 self._blend(_moves_where(move_index, moves, lambda mv: self.z_after_hold(mv, moves)), blend))
-
-    def z_over_limit(self, xyz_m: np.ndarray, dt: float, margin: float = 1.2, blend: int = 24) -> np.ndarray:
-        """Share of the plan in z where the compensated command's z acceleration exceeds what
-        ``max_z_accel`` lets the firmware do (Klipper's ``max_z_accel * d/|dz|`` along a move is a
-        cap of ``max_z_accel`` on its z component): there the z share moves back to the plan."""
-        z = xyz_m[:, 2] * 1e3
-        if len(z) < 3 or not np.isfinite(self.lim.max_z_accel):
-            return np.zeros(len(z))
-        acc = np.zeros(len(z))
-        acc[1:-1] = np.abs(z[2:] - 2.0 * z[1:-1] + z[:-2]) / (dt * dt)
-        return self._blend(acc > margin * self.lim.max_z_accel, blend)
 
     @staticmethod
     def _blend(m: np.ndarray, blend: int) -> np.ndarray:
