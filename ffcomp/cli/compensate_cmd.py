@@ -28,6 +28,10 @@ def compensate_cmd(
                                         "moves that travel in z.")] = "keep",
     pin_holds: Annotated[bool, typer.Option("--pin-holds/--no-pin-holds", help="Keep the command on the "
                                             "reference during extruder-only moves and dwells.")] = False,
+    plan_where_limited: Annotated[bool, typer.Option(
+        "--plan-where-limited/--compensate-where-limited",
+        help="Follow the plan where the firmware's limits would make the compensated command run late "
+             "(moves bound by the extruder's limits; the z of z-hops right after a retraction).")] = True,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
                                              "compare with the intended commands.")] = True,
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,
@@ -65,7 +69,8 @@ def compensate_cmd(
         return
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
-                             pin_holds=pin_holds, inverse=InverseConfig(method=method))
+                             pin_holds=pin_holds, inverse=InverseConfig(method=method),
+                             plan_where_limited=plan_where_limited)
     show = progress and not json and os.environ.get("CI") != "true"
     if show:
         with Progress(TextColumn("[bold]compensating[/] {task.description}"), BarColumn(),
