@@ -49,3 +49,42 @@ def test_bench_criteria_on_the_simulator(profile):
         x, y = case.trajectory.name.split("@(")[1].split(",")[:2]
         if np.hypot(float(x), float(y)) >= 100:
             assert lpv.lag.rms_norm_um <= 0.2 * lti.lag.rms_norm_um, case.trajectory.name
+
+
+OTHER = "samples/profiles/other_delta.toml"
+OTHER_TRUTH = "samples/profiles/other_delta_truth.toml"
+
+
+def _zigzag_and_layers():
+    """A short zig-zag and a two-layer square with a retraction, z-hop and unretraction."""
+    zz = ["G90", "M83", "SET_VELOCITY_LIMIT VELOCITY=300 ACCEL=10000", "G1 X-15 Y-6 Z0.2 F6000", "G4 P0"]
+    for k in range(12):
+        zz += [f"G1 X{15 if k % 2 == 0 else -15} Y{-6 + k} E0.9 F15000", f"G1 Y{-5 + k} E0.03"]
+    sq = ["G90", "M83", "SET_VELOCITY_LIMIT ACCEL=10000", "G1 X-20 Y-20 Z0.2 F6000", "G4 P0"]
+    for layer in range(2):
+        if layer:
+            sq += ["G1 E-0.8 F2100", "G1 X-20 Y-20 Z0.4 F12000", "G1 E0.8 F2100"]
+        sq += ["G1 X20 Y-20 E1.5 F9000", "G1 X20 Y20 E1.5", "G1 X-20 Y20 E1.5", "G1 X-20 Y-20 E1.5"]
+    return {"zigzag": zz, "layers": sq}
+
+
+@pytest.mark.parametrize("which", ["default", "other"])
+def test_gcode_keeps_the_exact_commands_gain_on_both_profiles(tmp_path, profile, which):
+    """Loose bounds on what benchmarks/bench_gcode_fidelity.py measures, on two short files: the
+    clock holds (drift on the absolute clock), and the G-code keeps most of the exact commands'
+    gain, on the default printer and on a different one judged on its "true" dynamics."""
+    from ffcomp.profile import load_profile
+
+    prof, plant = (profile, None) if which == "default" else (load_profile(OTHER), load_profile(OTHER_TRUTH))
+    for name, lines in _zigzag_and_layers().items():
+        src = tmp_path / f"{name}.gcode"
+        src.write_text("\n".join(lines) + "\n")
+        chk = check_gcode_output(prof, src, tmp_path / f"{name}_out.gcode", plant_profile=plant)
+        none, exact = chk.none, chk.exact
+        assert exact.lag.rms_norm_um < 0.05 * none.lag.rms_norm_um, name
+        if name == "zigzag":  # no holds: the clock is exact and the G-code keeps >= 90 %
+            assert abs(chk.summary.self_check_drift_ms) < 0.2, chk.summary.self_check_drift_ms
+            assert chk.kept("lag") >= 0.9 and chk.kept("contour") >= 0.9, (chk.kept("lag"), chk.kept("contour"))
+        else:  # a retraction and a z-hop: a G-code file cannot move during a hold (see README)
+            assert abs(chk.summary.self_check_drift_ms) < 1.5, chk.summary.self_check_drift_ms
+            assert chk.kept("lag") >= 0.4 and chk.kept("contour") >= 0.4, (chk.kept("lag"), chk.kept("contour"))

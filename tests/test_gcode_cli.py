@@ -76,12 +76,14 @@ def test_plan_errors_and_lenient(capsys, tmp_path):
     code, out, err = run(capsys, "plan", bad)
     assert code == 3 and "bad.gcode:2" in err and "X1O" in err
     d = run_json(capsys, "plan", bad, "--lenient")
-    assert d["warnings"] == 1 and d["moves"] == 2
+    assert d["warnings"] == 1 and d["moves"] == 1  # no G28: the plan starts at the first move's target
     far = tmp_path / "far.gcode"
     far.write_text("G1 X200 F600\n")
     code, out, err = run(capsys, "plan", far)
     assert code == 3 and "far.gcode:1" in err and "out of range" in err
-    d = run_json(capsys, "plan", far, "--planner", "marlin")
+    near = tmp_path / "near.gcode"
+    near.write_text("G28\nG1 X20 F600\n")
+    d = run_json(capsys, "plan", near, "--planner", "marlin")
     assert d["planner"] == "marlin"
     code, out, err = run(capsys, "plan", far, "--planner", "reprap")
     assert code != 0

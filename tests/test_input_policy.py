@@ -101,7 +101,8 @@ def test_after_g28_the_start_is_home_and_output_unchanged(tmp_path, profile):
     a, b = tmp_path / "a.gcode", tmp_path / "b.gcode"
     sa = compensate_file(str(src), str(a), profile, FAST)
     compensate_file(str(src), str(b), profile, CompensateOptions(predict=False, start_mm=(5.0, 5.0, 50.0)))
-    assert sa.homed_first is True and sa.warnings == 0 and a.read_text() == b.read_text()
+    assert sa.homed_first is True and a.read_text() == b.read_text()
+    assert not any("before any G28" in n for n in sa.notes)  # no start warning (timing notes may remain)
     assert sa.start_mm == [0.0, 0.0, profile.geometry.z_max_mm]
     assert "travel to the start" not in a.read_text()
     first = _motion(a.read_text())[0]
@@ -146,7 +147,8 @@ def test_stop_lines_run_where_the_compensated_command_rests(tmp_path, prof, cmd)
         assert np.linalg.norm(_xyz(ln) - [20.0, 0.0, 0.3]) < 0.02, (ln, lines[i - 4:i + 1])
     assert s.commands_stopped + s.commands_unknown == (0 if cmd == "M400" else 1) and s.self_check_max_um < 50
     if cmd == "MY_PURGE_MACRO":
-        assert s.commands_unknown == 1 and s.warnings == 1 and any("MY_PURGE_MACRO" in n for n in s.notes)
+        assert s.commands_unknown == 1 and s.warnings == len(s.notes)
+        assert sum("MY_PURGE_MACRO" in n for n in s.notes) == 1
 
 
 def test_unknown_command_policies(tmp_path, profile):
@@ -157,7 +159,8 @@ def test_unknown_command_policies(tmp_path, profile):
     assert not (tmp_path / "o.gcode").exists()
     s = compensate_file(str(src), str(tmp_path / "p.gcode"), profile,
                         CompensateOptions(predict=False, unknown_policy="pass"))
-    assert s.commands_unknown == 1 and s.commands_stopped == 0 and s.warnings == 1
+    assert s.commands_unknown == 1 and s.commands_stopped == 0 and s.warnings == len(s.notes)
+    assert sum("MY_PURGE_MACRO" in n for n in s.notes) == 1
     assert "MY_PURGE_MACRO LEN=3" in (tmp_path / "p.gcode").read_text()
 
 
@@ -246,7 +249,8 @@ def test_lenient_comments_out_what_it_skips(tmp_path, profile):
     text = (tmp_path / "o.gcode").read_text()
     assert "; ffcomp (skipped): G1 XNaN Y5 E2.5\n" in text and "; ffcomp (skipped): G1 X1O Y2\n" in text
     assert not re.search(r"^G1 XNaN", text, re.M)
-    assert s.lines_skipped == 2 and s.warnings == 2
+    assert s.lines_skipped == 2 and sum("skipped" in n.lower() or "malformed" in n.lower() for n in s.notes) >= 2
+    assert s.warnings == len(s.notes)
 
 
 # ------------------------------------------------------------------ bytes (issue 12 item 7)
@@ -371,7 +375,8 @@ def test_a_byte_order_mark_at_the_start_is_dropped(tmp_path, profile):
     assert recs[0].command == "G28" and recs[0].raw == "G28\n"
     out = tmp_path / "o.gcode"
     s = compensate_file(str(src), str(out), profile, FAST)
-    assert s.homed_first and s.warnings == 0 and b"\xef\xbb\xbf" not in out.read_bytes()
+    assert s.homed_first and not any("before any G28" in n for n in s.notes)
+    assert b"\xef\xbb\xbf" not in out.read_bytes()
 
 
 def test_hook_shows_the_warnings(tmp_path, capsys):

@@ -17,7 +17,7 @@ from .common import app, run_app  # noqa: E402  (after the thread settings)
 
 # command modules register themselves on ``app`` when imported
 _COMMAND_MODULES = ("compensate_cmd", "model_cmds", "identify_cmd", "plan_cmd", "profile_cmds", "validate_cmds",
-                    "sim_cmds", "hook_cmd")
+                    "sim_cmds", "hook_cmd", "firmware_cmd")
 
 
 def _load_commands() -> None:

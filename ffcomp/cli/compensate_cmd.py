@@ -27,9 +27,14 @@ def compensate_cmd(
     method: Annotated[str, typer.Option(help="Inverse variant: lpv (default) or lti-centre.")] = "lpv",
     tol_um: Annotated[float, typer.Option("--tol-um", help="G-code point placement tolerance, um.")] = 5.0,
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep: compensated z everywhere; hold: keep planned "
-                                        "z on layer moves (firmware with low max_z_accel).")] = "keep",
+                                        "z on layer moves (firmware with low max_z_accel); auto: planned z on "
+                                        "moves that travel in z.")] = "keep",
     pin_holds: Annotated[bool, typer.Option("--pin-holds/--no-pin-holds", help="Keep the command on the "
                                             "reference during extruder-only moves and dwells.")] = False,
+    plan_where_limited: Annotated[bool, typer.Option(
+        "--plan-where-limited/--compensate-where-limited",
+        help="Follow the plan where the firmware's limits would make the compensated command run late "
+             "(moves bound by the extruder's limits; the z of z-hops right after a retraction).")] = True,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
                                              "compare with the intended commands.")] = True,
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,
@@ -58,8 +63,8 @@ def compensate_cmd(
         raise typer.BadParameter(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
     if method not in ("lpv", "lti-centre"):
         raise typer.BadParameter(f"--method must be lpv or lti-centre for files, got {method!r}")
-    if z_mode not in ("keep", "hold"):
-        raise typer.BadParameter(f"--z-mode must be keep or hold, got {z_mode!r}")
+    if z_mode not in ("keep", "hold", "auto"):
+        raise typer.BadParameter(f"--z-mode must be keep, hold or auto, got {z_mode!r}")
     if tol_um <= 0:
         raise typer.BadParameter(f"--tol-um must be > 0, got {tol_um}")
     if unknown_commands not in ("stop", "pass", "refuse"):
@@ -83,7 +88,7 @@ def compensate_cmd(
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
                              pin_holds=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
-                             unknown_policy=unknown_commands)
+                             unknown_policy=unknown_commands, plan_where_limited=plan_where_limited)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
         with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),
@@ -94,11 +99,6 @@ def compensate_cmd(
         summ = compensate_file(str(source), out, prof, opts, progress=PlainProgress(source.name))
     else:
         summ = compensate_file(str(source), out, prof, opts)
-    if not json:
-        from rich.markup import escape
-
-        for note in summ.notes:
-            err_console.print(f"[yellow]warning:[/] {escape(str(note))}", highlight=False, soft_wrap=True)
     _report(summ.to_dict(), json, to_stderr=(out is None))
 
 
@@ -182,6 +182,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "self_check_max_um": ("self-check: max deviation of re-planned carriages", "{:.1f} um"),
         "self_check_rms_um": ("self-check: RMS deviation", "{:.2f} um"),
         "self_check_catch_up_max_um": ("self-check: max deviation in catch-ups after holds", "{:.1f} um"),
+        "self_check_drift_ms": ("self-check: largest drift on the absolute clock", "{:+.3f} ms"),
+        "self_check_abs_max_um": ("self-check: max deviation at the same absolute time", "{:.1f} um"),
         "header_accel_mm_s2": ("firmware ACCEL the output sets", "{:.0f} mm/s^2"),
         "clamped": ("samples clamped to the workspace", "{}"),
         "lines_in": ("lines in", "{}"),

@@ -23,6 +23,7 @@ Planning streams: the lookahead queue holds only the moves that can still change
 
 from __future__ import annotations
 
+import os
 from typing import Iterable, Iterator
 
 from ..errors import GcodeError
@@ -160,8 +161,11 @@ class GcodePlan:
         Planner (and G-code dialect) name; default ``profile.limits.planner``.
     arc_resolution_mm : float
         Klipper ``[gcode_arcs] resolution``.
-    start_position_mm : (x, y, z, e)
-        Position before the first line (the machine is assumed homed there).
+    start_position_mm : (x, y, z, e), optional
+        Position before the first line (the machine is assumed homed there).  Default: for a file,
+        where :func:`ffcomp.gcode.start.resolve_start` puts it (home if the file homes first, else the
+        profile's ``start_position_mm`` or the target of the first move), so that ``plan``,
+        ``simulate`` and ``compensate`` start a file at the same place; (0, 0, 0) for other sources.
     path : str, optional
         Name for error messages when ``source`` is not a file name.
     unknown_policy : str
@@ -172,12 +176,19 @@ class GcodePlan:
     """
 
     def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
-                 arc_resolution_mm: float = 1.0, start_position_mm=(0.0, 0.0, 0.0, 0.0),
+                 arc_resolution_mm: float = 1.0, start_position_mm=None,
                  path: str | None = None, unknown_policy: str = "stop", **planner_kw):
         self.profile = profile
         self.firmware = firmware or profile.limits.planner
         if self.firmware not in PLANNERS:
             raise ValueError(f"unknown planner {self.firmware!r} (known: {', '.join(PLANNERS)})")
+        if start_position_mm is None:
+            if isinstance(source, (str, os.PathLike)):
+                from .start import resolve_start
+
+                start_position_mm = resolve_start(str(source), profile, dialect=self.firmware).position_mm
+            else:
+                start_position_mm = (0.0, 0.0, 0.0, 0.0)
         pkw = {} if path is None else {"path": path}
         self.parser: GcodeParser = parse_gcode(
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,

@@ -15,8 +15,10 @@ micrometre-sized compensated segment.  A file that moves before homing gets a wa
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+from ..errors import GcodeError
 from .parser import parse_gcode
 from .records import ArcMove
 
@@ -110,4 +112,10 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
     if start_mm is not None or arc:  # an arc's centre is relative to its start: keep the start as it is
         return StartInfo((*base, 0.0), False, origin if start_mm is not None else "default",
                          p.first_motion_line, travel)
-    return StartInfo((mv.end[0], mv.end[1], mv.end[2], 0.0), False, "first move", p.first_motion_line, travel)
+    g = profile.geometry
+    x, y, z = mv.end[0], mv.end[1], mv.end[2]
+    if math.hypot(x, y) > g.print_radius_mm + 1e-9 or not g.z_min_mm <= z <= g.z_max_mm:
+        raise GcodeError(src, p.first_motion_line, f"Move out of range: the first move's target ({x:g}, {y:g}, "
+                         f"{z:g}) mm is outside the print volume (radius {g.print_radius_mm:g} mm, z "
+                         f"{g.z_min_mm:g}..{g.z_max_mm:g} mm)")
+    return StartInfo((x, y, z, 0.0), False, "first move", p.first_motion_line, travel)

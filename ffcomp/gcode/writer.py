@@ -7,7 +7,14 @@ the compensated nozzle positions, and every other line kept in place.
 
 * Points are placed adaptively: a segment ends where linear interpolation *in time* (the firmware
   moves a segment at constant speed) would stray from the compensated samples by more than
-  ``tol_mm``; feed rates are length / duration, so timing follows the compensated command.
+  ``tol_mm``.
+* Timing on the absolute clock: with Klipper, the feed rates come from a closed-loop solve
+  (:mod:`ffcomp.gcode.feed_solve`) against Klipper's own plan of the written chain (junction
+  speeds, ramps, ``max_z_accel * d/|dz|``, the extruder's limits), so every segment ends when its
+  sample is due, and lateness a limit forces (a catch-up after a hold) is taken back by the
+  segments after it instead of adding up over the file.  Extruder-only moves and dwells count
+  with their exact durations; a hold (a segment under a micrometre) leaves the nozzle where it
+  was and a ``G4`` gives back lateness.  (Marlin: a per-segment feed solve.)
 * Extrusion follows the reference timing: each segment extrudes ``e_ref(t_end) - e_ref(t_start)``
   (relative extrusion, rounding carried over), so material is laid when the original lays it.
 * Lines whose meaning the compensation has baked in are commented out with ``; ffcomp:``:
@@ -32,11 +39,19 @@ from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
+from .chain_plan import ChainLimits
+from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
-__all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES"]
+__all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
+
+#: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
+EXTRUDE_SPARE_S = 3e-3
+
+#: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream
+SEG_COLS = 5
 
 #: ModeChange names whose effect is baked into the output (the line is commented out)
 BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
@@ -81,6 +96,10 @@ class WriterStats:
     holds: int = 0
     peak_speed_mm_s: float = 0.0
     peak_accel_mm_s2: float = 0.0
+    #: largest ``accel * |dz| / d`` between segments: the max_z_accel the intended timing needs
+    peak_z_accel_mm_s2: float = 0.0
+    #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
+    peak_z_velocity_mm_s: float = 0.0
     extruded_mm: float = 0.0
     notes: list = field(default_factory=list)
 
@@ -105,7 +124,7 @@ class GcodeWriter:
     def __init__(self, lines: Iterator[GcodeLine], out: IO[str], dt_s: float, tol_mm: float,
                  moves: dict[int, PlannedMove], accel_mm_s2: float = float("inf"),
                  max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf"),
-                 segment_table: IO[bytes] | None = None):
+                 segment_table: IO[bytes] | None = None, chain_limits: ChainLimits | None = None):
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
@@ -128,6 +147,14 @@ class GcodeWriter:
         #: self-check: int64 rows written to ``segment_table`` (a binary file, so memory stays
         #: bounded); not recorded without one
         self.segment_table = segment_table
+        self.stream = -1  # compensation stream of the samples being written (a homing starts one)
+        #: where the firmware stands when the next stream starts (the plan's point: after a homing,
+        #: the home position), mm; None: the stream's first sample
+        self.stream_start_mm: np.ndarray | None = None
+        #: Klipper's limits for the closed-loop feed solve (None: the per-segment solve, for Marlin)
+        self.chain = chain_limits
+        self.timing = TimingState()
+        self.pend_late_s = 0.0  # lateness of extruder-only moves and dwells not yet absorbed
         self._write = out.write
         self._next_sig = 0  # body line at or after which the next signature line is due
         #: speed of the travel to the first point (None: no travel; see the module docstring), mm/s
@@ -172,8 +199,10 @@ class GcodeWriter:
 
     # ------------------------------------------------------------------ samples
     def feed(self, k0: int, xyz_mm: np.ndarray, e_mm: np.ndarray, move_index: np.ndarray,
-             lineno: np.ndarray) -> None:
+             lineno: np.ndarray, dense: np.ndarray | None = None) -> None:
         """Compensated nozzle positions of samples ``k0 ..`` with their reference extrusion and move.
+
+        ``dense`` marks samples that each end a segment of their own (no point placement).
 
         The chunk is cut into runs of one planned move.  The numbers of every motion run (point
         placement, extrusion, feed rates) are computed for the whole chunk at once
@@ -183,8 +212,11 @@ class GcodeWriter:
         n = len(xyz_mm)
         if n == 0:
             return
-        if self.last_pt is None:
-            self.last_pt, self.last_k, self.e_last_ref = xyz_mm[0].copy(), k0, float(e_mm[0])
+        if self.last_pt is None:  # a new stream (the start, or after a homing)
+            start = self.stream_start_mm if self.stream_start_mm is not None else xyz_mm[0]
+            self.last_pt, self.last_k, self.e_last_ref = np.array(start, float), k0, float(e_mm[0])
+            self.stream_start_mm = None
+            self.stream += 1
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()
         ends = np.concatenate([cut, [n]]).tolist()
@@ -194,7 +226,7 @@ class GcodeWriter:
         for a, b, mi, ln in zip(starts, ends, mis, lns):
             mv = self.moves.get(mi)
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
-        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs)
+        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense)
         seg_base = []
         for r, run in enumerate(runs):
             mv, kind, ln = run.move, run.kind, run.lineno
@@ -212,8 +244,8 @@ class GcodeWriter:
                     self.nlines += s1 - s0
             elif mv.index not in self.done_moves:
                 if kind == EXTRUDE:
-                    speed = max(mv.cruise_v_mm_s, 1e-3)
-                    self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.1f}\n")
+                    speed = chunk.extrude_v[r] or max(mv.cruise_v_mm_s, 1e-3)
+                    self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.3f}\n")
                     self.stats.extrude_moves += 1
                 else:
                     self._dwell(mv, ln)
@@ -241,7 +273,8 @@ class GcodeWriter:
             rows[:, 0] += base[chunk.seg_run]
             self.segment_table.write(rows.tobytes())
 
-    def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list) -> "_Chunk":
+    def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list,
+                    dense: np.ndarray | None = None) -> "_Chunk":
         """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.
 
         Each motion run's path starts at the last emitted point; after an extruder-only move or a
@@ -257,8 +290,18 @@ class GcodeWriter:
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
         follows_hold = np.zeros(R, bool)
+        # an extruder-only move or dwell lasts its planned time, which starts and ends between
+        # samples: the difference from the samples it spans is lateness the next segment must absorb
+        pend, run_pre = self.pend_late_s, np.zeros(R)
         for r, (a, b, _, mv, kind, _) in enumerate(runs):
+            if kind != MOVE and mv is not None:
+                first = mv.index not in self.done_moves
+                dur = mv.duration_s
+                if first and kind == EXTRUDE and self.chain is not None:
+                    dur = self._fast_extrude(ch, r, mv)
+                pend += (dur if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:
+                run_pre[r], pend = pend, 0.0
                 run_ids.append(r)
                 a_s.append(a)
                 n_s.append(b - a + 1)
@@ -275,6 +318,7 @@ class GcodeWriter:
                 after_hold = True
             last_k, e_last = k0 + b - 1, float(E[b - 1])
         self.after_hold = after_hold
+        self.pend_late_s = pend
         self.last_k, self.e_last_ref = last_k, e_last
         if not run_ids:
             self._extrusion(ch, np.zeros(0), np.zeros(0, np.int64), ext_de, ext_runs)
@@ -295,6 +339,8 @@ class GcodeWriter:
         keep = np.zeros(total, bool)
         keep[offs] = keep[last] = True
         keep[offs[catch] + 1] = True
+        if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
+            keep |= dense[np.maximum(src, 0)]
         keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
         run_of = np.repeat(np.arange(len(n_s)), n_s)
@@ -306,12 +352,17 @@ class GcodeWriter:
         srun = run_of[i]  # motion run of each segment
         # the firmware sees the printed (rounded) coordinates: durations must come from those
         Pr = np.round(P, 4)
-        d = Pr[j] - Pr[i]
-        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-        hold = dist < 1e-3  # under a micrometre: the firmware would crawl; hold instead
-        de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         first_seg = np.r_[True, srun[1:] != srun[:-1]]
-        v = self._firmware_feeds(d, dist, dt, hold, first_seg & follows_hold[run_ids[srun]])
+        Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
+        de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
+        stop_first = first_seg & follows_hold[run_ids[srun]]
+        if self.chain is not None:
+            pre = np.where(first_seg, run_pre[run_ids[srun]], 0.0)
+            v = solve_feeds(self.chain, self.timing, Pr[i], Pr[j], dt, de, hold, stop_first,
+                            open_end=runs[-1].kind == MOVE, pre_late=pre)
+        else:
+            v = self._firmware_feeds(d, dist, dt, hold, stop_first)
+            v = np.where(hold, np.where(np.abs(de) > 1e-9, np.maximum(np.abs(de) / dt, 1e-3), dt), v)
         if runs[-1].kind != MOVE:
             self.f_last = 0.0
         # ---- statistics
@@ -327,21 +378,26 @@ class GcodeWriter:
             if len(vv) > 1:
                 acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[moving][-len(vv) + 1:], self.dt)
                 self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
+                sp = np.linalg.norm(vv[1:], axis=1)
+                uz = np.abs(vv[1:, 2]) / np.maximum(sp, 1e-12)
+                self.stats.peak_z_accel_mm_s2 = max(self.stats.peak_z_accel_mm_s2, float(np.max(acc * uz)))
+                self.stats.peak_z_velocity_mm_s = max(self.stats.peak_z_velocity_mm_s, float(np.max(sp * uz)))
             self.prev_v = vv[-1]
         # ---- the lines (one per segment) and the self-check's table
         xs, ys, zs = Pr[j].T.tolist()
+        pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms
         lines = []
         app = lines.append
-        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), dt.tolist()):
-            if h:
+        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), v.tolist()):
+            if h:  # a hold's value: the extruder's feed, or the dwell's duration
                 if abs(e) > 1e-9:
-                    app(f"G1 E{e:.5f} F{max(abs(e) / t, 1e-3) * 60:.1f}\n")
+                    app(f"G1 E{e:.5f} F{f:.3f}\n")
                 else:
-                    app(f"G4 P{t * 1000:.0f}\n")
+                    app(f"G4 P{t * 1000:{pfmt}}\n")
             elif abs(e) > 1e-9:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.3f}\n")
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.{3 if f >= 100 else 6}f}\n")
             else:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.3f}\n")
+                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.{3 if f >= 100 else 6}f}\n")  # slow: a long line
         ch.lines = lines
         cnt = np.bincount(srun, minlength=len(n_s))
         ends = np.cumsum(cnt)
@@ -349,7 +405,8 @@ class GcodeWriter:
             ch.run_lines[r] = (int(ends[m_] - cnt[m_]), int(ends[m_]))
         local = np.arange(len(i)) - (ends - cnt)[srun] + 1  # line of the segment within its run
         cu = catch[srun] & (i == offs[srun])
-        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64)], 1)[moving].astype(np.int64)
+        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64), np.full(len(i), self.stream)],
+                               1)[moving].astype(np.int64)
         ch.seg_run = run_ids[srun][moving]
         self.last_pt = Pr[last[-1]].copy()
         return ch
@@ -382,8 +439,20 @@ class GcodeWriter:
         self._w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{self.start_travel_mm_s * 60:.1f} ; ffcomp: travel to the start\n")
         self.start_travel_mm_s = None
 
+    def _fast_extrude(self, ch, r: int, mv: PlannedMove) -> float:
+        """Write an extruder-only move up to ``EXTRUDE_SPARE_S`` faster than planned (within the
+        extruder's limits): the command moved on while the nozzle had to stand, and the segment
+        after the move catches up in the time saved.  Returns the written move's duration."""
+        de = np.array([mv.end_mm[3] - mv.start_mm[3]])
+        lim = self.chain
+        want = np.array([max(mv.duration_s - EXTRUDE_SPARE_S, 1e-4)])
+        v = extrude_only_feed(de, want, lim.max_e_accel, lim.max_e_velocity)
+        v = np.maximum(v, mv.cruise_v_mm_s)
+        ch.extrude_v[r] = float(np.round(v[0] * 60, 3) / 60)
+        return float(extrude_only_time(de, np.array([ch.extrude_v[r]]), lim.max_e_accel)[0])
+
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
-        self._w(f"G4 P{mv.cruise_t_s * 1000:.0f}\n")
+        self._w(f"G4 P{mv.cruise_t_s * 1000:{'.0f' if self.chain is None else '.3f'}}\n")
 
     def _firmware_feeds(self, d, dist, dt, hold, stop_before) -> np.ndarray:
         """Feed rates that make the firmware's trapezoids last the intended durations.
@@ -425,6 +494,39 @@ class GcodeWriter:
         self.flush_lines(1 << 62)
 
 
+def _settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.ndarray, offs: np.ndarray,
+                  last: np.ndarray):
+    """Segments under a micrometre are written as holds (the firmware would crawl): the nozzle stays
+    where the last written segment left it, so the end point of a hold is its start point, and the
+    next segment (or the next run, which starts where the previous one ended) starts from there;
+    a few vectorised passes settle the cascade.  Returns ``Pr`` (points as written), the segment
+    vectors, lengths and hold flags."""
+    Pr = Pr.copy()
+    n = len(i)
+    for _ in range(6):
+        d = Pr[j] - Pr[i]
+        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        hold = dist < 1e-3
+        if not hold.any():
+            break
+        # the first hold of each group of consecutive holds (within a run) is its root
+        grp_start = hold & (first_seg | ~np.r_[False, hold[:-1]])
+        root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
+        moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
+        if len(offs) > 1:  # a run starts where the previous one ended
+            lead_bad = np.any(Pr[offs[1:]] != Pr[last[:-1]], axis=1)
+        else:
+            lead_bad = np.zeros(0, bool)
+        if not moved.any() and not lead_bad.any():
+            break
+        Pr[j[hold]] = Pr[i[root[hold]]]
+        if len(offs) > 1:
+            Pr[offs[1:]] = Pr[last[:-1]]
+    d = Pr[j] - Pr[i]
+    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return Pr, d, dist, dist < 1e-3
+
+
 class _Run(NamedTuple):
     """Samples ``[start, end)`` of a chunk that belong to one planned move."""
 
@@ -439,13 +541,14 @@ class _Run(NamedTuple):
 class _Chunk:
     """The writer's numbers for one chunk (see :meth:`GcodeWriter._plan_chunk`)."""
 
-    __slots__ = ("lines", "run_lines", "extrude_de", "seg_rows", "seg_run")
+    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run")
 
     def __init__(self, n_runs: int):
         self.lines: list[str] = []
         self.run_lines = [(0, 0)] * n_runs
         self.extrude_de = [0.0] * n_runs
-        self.seg_rows = np.zeros((0, 4), np.int64)
+        self.extrude_v = [0.0] * n_runs  # feed of an extruder-only move written faster (0: as planned)
+        self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 from ..compensate.inverse import InverseConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
+from ..gcode.chain_plan import ChainLimits, segment_limits
 from ..gcode.flavour import detect_flavour, flavour_mismatch
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
@@ -31,11 +32,19 @@ from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import carriage_rates, forward, inverse
 from ..model.lpv import LpvModel
-from .header import header_accel, header_lines
+from .header import firmware_needs, header_accel, header_lines, limit_warnings
 from .predictor import Predictor
 from .self_check import self_check
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel"]
+
+#: the z modes (see :class:`CompensateOptions`)
+Z_MODES = ("keep", "hold", "auto")
+
+#: move index of the rest samples before and after a compensation stream (no planned move: the
+#: machine stands while the command pre-actuates the first move or settles after the last, so these
+#: samples are motion of their own, never part of an extruder-only move or dwell)
+REST_MOVE = -1
 
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3
@@ -47,10 +56,15 @@ class CompensateOptions:
 
     method : inverse variant (``lpv`` or ``lti-centre`` stream)
     tol_um : point placement tolerance of the G-code writer, micrometres
-    z_mode : ``keep`` (emit the compensated z of every point) or ``hold`` (keep z at the planned z
+    z_mode : ``keep`` (emit the compensated z of every point), ``hold`` (keep z at the planned z
         wherever the plan holds it: no z motion on layer moves, for firmware with a low max_z_accel)
+        or ``auto`` (the planned z on every move that travels in z: z travel runs on the clock at
+        any max_z_accel, uncompensated).  In every mode the z of a z-hop right after an
+        extruder-only move or dwell follows the plan (see ``plan_where_limited``).
     self_check : re-plan the output and compare with the intended commands
-    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres
+    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres (at least
+        3 x tol_um)
+    self_check_drift_ms : largest allowed drift of the re-planned output on the absolute clock, ms
     predict : predict the residual vibration before/after with the LPV model for the summary
     lenient : malformed G-code lines become counted warnings
     accel_factor : the header's ACCEL is this times the profile's max_accel (at least 100,000 mm/s^2):
@@ -80,6 +94,11 @@ class CompensateOptions:
     inverse: InverseConfig = field(default_factory=InverseConfig)
     start_mm: tuple | None = None
     unknown_policy: str = "stop"
+    #: the self-check fails when the re-planned output runs more than this off the intended clock, ms
+    self_check_drift_ms: float = 50.0
+    #: moves the extruder's limits bind, and the z of z-hops right after a hold, follow the plan
+    #: (see :class:`LimitBound`): the firmware could not run the compensated command on time there
+    plan_where_limited: bool = True
 
 
 @dataclass
@@ -124,6 +143,15 @@ class CompensationSummary:
     #: where the plan starts (x, y, z mm) and whether the file homes before its first move
     start_mm: list | None = None
     homed_first: bool | None = None
+    #: the self-check on the absolute clock: largest lateness of a re-planned segment end against
+    #: the intended command timeline (ms, signed), where (s), and at the end of the file (ms)
+    self_check_drift_ms: float | None = None
+    self_check_drift_at_s: float | None = None
+    self_check_drift_end_ms: float | None = None
+    #: largest carriage deviation from the intended commands at the same absolute time, um
+    self_check_abs_max_um: float | None = None
+    #: samples written from the plan (uncompensated) because the firmware's limits bind there
+    plan_fallback_samples: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -170,8 +198,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     source is replaced only after the whole output, header and self-check are done).
     """
     t_wall = time.perf_counter()
-    if opts.z_mode not in ("keep", "hold"):
-        raise ValueError(f"z_mode must be 'keep' or 'hold', got {opts.z_mode!r}")
+    if opts.z_mode not in Z_MODES:
+        raise ValueError(f"z_mode must be one of {', '.join(Z_MODES)}, got {opts.z_mode!r}")
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
@@ -210,9 +238,13 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             accel = header_accel(profile, opts)
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
-                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf)
+                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
+                                 chain_limits=(ChainLimits(profile, accel, opts.corner_velocity_mm_s)
+                                               if plan.firmware == "klipper" else None))
             writer.start_travel_mm_s = start.travel_mm_s
             pred = Predictor(model, dt) if opts.predict else None
+            bound = (LimitBound(ChainLimits(profile, accel, opts.corner_velocity_mm_s))
+                     if opts.plan_where_limited and plan.firmware == "klipper" else None)
             k_written = 0
             last_qc = None
 
@@ -224,10 +256,22 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                     raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
                                          f"nozzle position (carriages {qc[bad] * 1e3} mm)")
                 fix = np.zeros(len(xyz), bool)
-                if opts.z_mode == "hold":
-                    hold = _z_held(meta["move_index"], moves)
+                if opts.z_mode in ("hold", "auto"):
+                    hold = (_z_held if opts.z_mode == "hold" else _z_moving)(meta["move_index"], moves)
                     xyz[hold, 2] = meta["xyz"][hold, 2]
                     fix |= hold
+                # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
+                # zones) cannot take a command that accelerates harder than the plan: they follow
+                # the plan, sample by sample, so the clock holds (counted in the summary)
+                dense = None
+                if bound is not None:
+                    w, wz = bound.weights(meta["move_index"], moves)
+                    dense = (w > 0) | (wz > 0)
+                    if dense.any():
+                        xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
+                        xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
+                        fix |= dense
+                        summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
                 # the firmware refuses positions outside its limits: a correction that pokes past
                 # them (at z_max after homing, at the rim) is clamped to the boundary
                 cl = _clamp_to_workspace(xyz, geom)
@@ -241,13 +285,14 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                              float(np.max(np.abs(qc - meta["q"]))) * 1e6)
                 qf.write(qc.astype(np.float32).tobytes())
                 new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
-                if new_stream:  # after a homing the machine stands at the new stream's first point
+                if new_stream or not k_written:  # the machine stands where the plan starts the stream
                     writer.last_pt = None
+                    writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
                 if pred is not None:
                     if new_stream:
                         pred.reset()
                     pred.push(qc, meta["q"], meta["xyz"])
-                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"])
+                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense)
                 k_written += len(qc)
                 last_qc = qc[-1].copy()
                 if progress is not None:
@@ -272,7 +317,11 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
-        head, foot = header_lines(profile, opts, src, accel)
+        needs = firmware_needs(profile, opts, accel, writer.stats)
+        lim_notes = limit_warnings(profile, needs) if plan.firmware == "klipper" else []
+        summ.warnings += len(lim_notes)
+        summ.notes.extend(lim_notes)
+        head, foot = header_lines(profile, opts, src, accel, needs)
         final_fd, final_tmp = make_temp(out_dir, "out", ".gcode")
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as fo, \
@@ -378,7 +427,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
         n_post = int(round(icfg.post_s / dt))
         qq, xx, ee, mi, ln = meta
         fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
-                  e=np.repeat(ee, n_post), move_index=np.repeat(mi, n_post), lineno=np.repeat(ln, n_post))
+                  e=np.repeat(ee, n_post), move_index=np.full(n_post, REST_MOVE), lineno=np.repeat(ln, n_post))
 
     for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz, block_len=opts.block_len,
                              overlap=0, path=src):
@@ -408,7 +457,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 k = pc[0]
                 n_pre = inv_pre_samples(icfg, dt)
                 fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
-                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.repeat(blk.move_index[k:k + 1], n_pre),
+                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_MOVE),
                           lineno=np.repeat(blk.lineno[k:k + 1], n_pre))
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
@@ -459,6 +508,79 @@ def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
 def _z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
     """Samples whose planned move keeps z constant."""
     return _moves_where(move_index, moves, lambda mv: abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9)
+
+
+class LimitBound:
+    """Which planned moves the extruder's limits bind: moves that extrude without XY travel or
+    retract while moving, whose acceleration cap ``max_extrude_only_accel * d/|de|`` is within
+    ``factor`` of the acceleration the plan already uses, so a compensated command (which
+    accelerates harder than the plan) cannot run on time there.  (Moves bound by ``max_z_accel``
+    stay compensated: their lateness is recovered by the feed solve and reported.)"""
+
+    def __init__(self, lim: ChainLimits, factor: float = 4.0):
+        self.lim, self.factor = lim, factor
+        self.cache: dict[int, bool] = {}
+
+    def bound(self, mv) -> bool:
+        b = self.cache.get(mv.index)
+        if b is None:
+            b = False
+            if mv.kind == "move" and (mv.accel_t_s > 0 or mv.decel_t_s > 0):
+                s0, s1 = np.array([mv.start_mm[:3]]), np.array([mv.end_mm[:3]])
+                lim = self.lim
+                acc_cap = segment_limits(_NoAccel(lim), s0, s1, np.array([mv.end_mm[3] - mv.start_mm[3]]))[1][0]
+                b = bool(acc_cap < self.factor * mv.accel_mm_s2)
+            if len(self.cache) > 4096:
+                self.cache.clear()
+            self.cache[mv.index] = b
+        return b
+
+    def mask(self, move_index: np.ndarray, moves: dict) -> np.ndarray:
+        return _moves_where(move_index, moves, self.bound)
+
+    def z_after_hold(self, mv, moves: dict) -> bool:
+        """A move with z travel right after an extruder-only move or dwell (a z-hop after a
+        retraction): the compensated command would pre-actuate its z during the hold, which a
+        G-code file cannot move in, and catch up after it at ``max_z_accel``: its z follows the plan."""
+        if mv.kind != "move" or abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9:
+            return False
+        prev = moves.get(mv.index - 1)
+        return prev is not None and prev.kind != "move"
+
+    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> tuple[np.ndarray, np.ndarray]:
+        """Share of the plan in each sample, for all axes and for z alone: 1 on the moves it takes
+        over, a raised-cosine blend over ``blend`` samples either side (the compensated command
+        pre-actuates a move before it starts and settles after it: without the blend the firmware
+        would have to jump)."""
+        return (self._blend(self.mask(move_index, moves), blend),
+                self._blend(_moves_where(move_index, moves, lambda mv: self.z_after_hold(mv, moves)), blend))
+
+    @staticmethod
+    def _blend(m: np.ndarray, blend: int) -> np.ndarray:
+        n = len(m)
+        if not m.any():
+            return np.zeros(n)
+        idx = np.arange(n)
+        on = np.nonzero(m)[0]
+        j = np.searchsorted(on, idx)
+        d_next = np.where(j < len(on), on[np.minimum(j, len(on) - 1)] - idx, n)
+        d_prev = np.where(j > 0, idx - on[np.maximum(j - 1, 0)], n)
+        d = np.minimum(d_next, d_prev).astype(float)
+        return np.where(d < blend, 0.5 * (1.0 + np.cos(np.pi * d / blend)), 0.0)
+
+
+class _NoAccel:
+    """A :class:`ChainLimits` view with only the extruder's caps."""
+
+    def __init__(self, lim):
+        self.__dict__.update(lim.__dict__)
+        self.accel = self.max_velocity = self.max_z_accel = self.max_z_velocity = float("inf")
+        self.slow_xy2 = self.very_slow_xy2 = float("inf")
+
+
+def _z_moving(move_index: np.ndarray, moves: dict) -> np.ndarray:
+    """Samples whose planned move travels in z."""
+    return _moves_where(move_index, moves, lambda mv: abs(mv.end_mm[2] - mv.start_mm[2]) >= 1e-9)
 
 
 def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:

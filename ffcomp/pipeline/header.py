@@ -2,11 +2,101 @@
 
 from __future__ import annotations
 
+import math
 import os
+from dataclasses import asdict, dataclass
 
 from .. import __version__
 
-__all__ = ["header_accel", "header_lines"]
+__all__ = ["header_accel", "header_lines", "FirmwareNeeds", "firmware_needs", "klipper_snippet",
+           "read_firmware_needs", "limit_warnings", "NEEDS_TAG"]
+
+#: the header line that carries the firmware values, machine-readable (``key=value`` words)
+NEEDS_TAG = "; ffcomp firmware:"
+
+
+@dataclass(frozen=True)
+class FirmwareNeeds:
+    """What a compensated file needs from Klipper (mm, s).
+
+    ``max_accel``, ``max_z_accel``, ``max_velocity``, ``max_z_velocity``: ``[printer]`` (printer.cfg)
+    values at or above which every segment runs in its intended time (rounded up to 100 mm/s^2 and
+    1 mm/s); ``accel``, ``square_corner_velocity``, ``minimum_cruise_ratio``: the run-time values
+    the file sets itself with ``SET_VELOCITY_LIMIT``.
+    """
+
+    max_accel: float
+    max_z_accel: float
+    max_velocity: float
+    max_z_velocity: float
+    accel: float
+    square_corner_velocity: float
+    minimum_cruise_ratio: float = 0.0
+
+
+def _up(x: float, step: float) -> float:
+    return float(math.ceil(max(x, 0.0) / step - 1e-9) * step)
+
+
+def firmware_needs(profile, opts, accel: float, stats) -> FirmwareNeeds:
+    """The firmware values a written body needs, from the writer's statistics (peak accelerations
+    and speeds between its segments, overall and projected on z)."""
+    lim = profile.limits
+    return FirmwareNeeds(
+        max_accel=max(_up(stats.peak_accel_mm_s2, 100.0), lim.max_accel_mm_s2),
+        max_z_accel=_up(stats.peak_z_accel_mm_s2, 100.0),
+        max_velocity=max(_up(stats.peak_speed_mm_s, 1.0), lim.max_velocity_mm_s),
+        max_z_velocity=_up(stats.peak_z_velocity_mm_s, 1.0),
+        accel=float(accel), square_corner_velocity=float(opts.corner_velocity_mm_s), minimum_cruise_ratio=0.0)
+
+
+def limit_warnings(profile, needs: FirmwareNeeds) -> list[str]:
+    """Warnings for profile limits below what the file needs (each says which and by how much)."""
+    lim = profile.limits
+    out = []
+    for name, have, need in (("max_z_accel", lim.max_z_accel_mm_s2, needs.max_z_accel),
+                             ("max_z_velocity", lim.max_z_velocity_mm_s, needs.max_z_velocity),
+                             ("max_velocity", lim.max_velocity_mm_s, needs.max_velocity)):
+        if need > have * (1 + 1e-9):
+            out.append(f"firmware: the profile's {name} = {have:g} is below the {need:g} this file's compensated "
+                       f"segments need ({need / have:.1f}x): those segments run late (the self-check's drift "
+                       f"says by how much); raise {name} in printer.cfg and the profile to remove the cost")
+    return out
+
+
+def read_firmware_needs(path: str, max_lines: int = 40) -> FirmwareNeeds | None:
+    """The :class:`FirmwareNeeds` stated in a compensated file's header (None if it has none)."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for i, line in enumerate(f):
+            if line.startswith(NEEDS_TAG):
+                kv = dict(w.split("=", 1) for w in line[len(NEEDS_TAG):].split() if "=" in w)
+                return FirmwareNeeds(**{k: float(kv[k]) for k in asdict(FirmwareNeeds(0, 0, 0, 0, 0, 0))})
+            if i >= max_lines:
+                break
+    return None
+
+
+def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
+    """The ``[printer]`` section a Klipper printer.cfg needs to run the file on time."""
+    lim = profile.limits if profile is not None else None
+
+    def val(need, have):
+        return max(need, have) if have is not None else need
+
+    lines = [
+        "# Klipper printer.cfg values this compensated file needs (ffcomp " + __version__ + ")",
+        "# (raise any lower value; higher values change nothing). The file itself sets the run-time limits:",
+        f"#   SET_VELOCITY_LIMIT ACCEL={needs.accel:.0f} SQUARE_CORNER_VELOCITY={needs.square_corner_velocity:g} "
+        f"MINIMUM_CRUISE_RATIO={needs.minimum_cruise_ratio:g}",
+        "[printer]",
+        f"max_velocity: {val(needs.max_velocity, lim.max_velocity_mm_s if lim else None):g}",
+        f"max_accel: {val(needs.max_accel, lim.max_accel_mm_s2 if lim else None):g}",
+        f"max_z_velocity: {val(needs.max_z_velocity, lim.max_z_velocity_mm_s if lim else None):g}",
+        f"max_z_accel: {val(needs.max_z_accel, lim.max_z_accel_mm_s2 if lim else None):g}",
+        f"square_corner_velocity: {needs.square_corner_velocity:g}",
+        f"minimum_cruise_ratio: {needs.minimum_cruise_ratio:g}",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def header_accel(profile, opts) -> float:
@@ -14,7 +104,8 @@ def header_accel(profile, opts) -> float:
     return float(max(1e5, opts.accel_factor * profile.limits.max_accel_mm_s2))
 
 
-def header_lines(profile, opts, src: str, accel: float) -> tuple[list[str], list[str]]:
+def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | None = None
+                 ) -> tuple[list[str], list[str]]:
     lim = profile.limits
     settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
                 f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
@@ -28,9 +119,16 @@ def header_lines(profile, opts, src: str, accel: float) -> tuple[list[str], list
         "; (limit and mode commands of the source are kept as '; ffcomp (baked in):' comments).",
     ]
     if lim.planner == "klipper":
+        if needs is not None:
+            head += [
+                f"; printer.cfg [printer] values this file needs to run on time: max_accel >= {needs.max_accel:g}, "
+                f"max_z_accel >= {needs.max_z_accel:g}, max_velocity >= {needs.max_velocity:g}, "
+                f"max_z_velocity >= {needs.max_z_velocity:g} (print them: ffcomp firmware-config FILE)",
+                NEEDS_TAG + " " + " ".join(f"{k}={v:g}" for k, v in asdict(needs).items()),
+            ]
         head += [
-            f"; requires [printer] max_z_accel >= {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
-            f"max_z_velocity >= {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
+            f"; timed for [printer] max_z_accel = {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
+            f"max_z_velocity = {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
             f"SET_VELOCITY_LIMIT ACCEL={accel:.0f} MINIMUM_CRUISE_RATIO=0 "
             f"SQUARE_CORNER_VELOCITY={opts.corner_velocity_mm_s:g}",
         ]

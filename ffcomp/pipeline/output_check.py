@@ -42,8 +42,13 @@ class OutputCheck:
         return (n - g) / (n - e)
 
 
-def check_gcode_output(profile, src: str | Path, out: str | Path) -> OutputCheck:
-    """Compensate ``src`` into ``out`` and judge the output on the simulator (single stream files)."""
+def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=None, opts=None) -> OutputCheck:
+    """Compensate ``src`` into ``out`` and judge the output on the simulator (single stream files).
+
+    ``plant_profile``: the printer simulated (default ``profile``; e.g. the "true" dynamics of an
+    identified profile); ``opts``: :class:`CompensateOptions` of the run.  The summary carries the
+    self-check's drift on the absolute clock (``self_check_drift_ms``).
+    """
     from ..gcode.start import resolve_start
 
     start = resolve_start(str(src), profile).position_mm  # where the compensation's plan starts
@@ -57,11 +62,11 @@ def check_gcode_output(profile, src: str | Path, out: str | Path) -> OutputCheck
     q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
     t = np.arange(len(q)) * dt
     ideal = invert(LpvModel.from_profile(profile), q, X, dt).q_cmd
-    summ = compensate_file(str(src), str(out), profile)
+    summ = compensate_file(str(src), str(out), profile, *([opts] if opts is not None else []))
     got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True,
                                      start_position_mm=start)).q_m[:len(q)]
     got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
-    sim = DeltaPlant.from_profile(profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
+    sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
     none, exact, gcode = (evaluate(t, X, sim.xyz_m[r]) for r in range(3))
     intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s
     return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended)

@@ -10,9 +10,14 @@ import numpy as np
 from ..errors import SelfCheckError
 from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
+from ..gcode.writer import SEG_COLS
 from ..kinematics import inverse
 
-__all__ = ["self_check"]
+__all__ = ["self_check", "shape_limit_um", "TIMING_NOTE_MS"]
+
+#: drift (ms) above which the summary notes the timing cost
+TIMING_NOTE_MS = 0.2
+_DEBUG: list | None = None  # set to a list to collect (time, lateness, line) rows
 
 
 def self_check(path: str, qfile: str, profile, geom, summ, opts,
@@ -29,10 +34,11 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
     dt = 1.0 / profile.limits.sample_rate_hz
     worst, worst_k, sq, cnt = 0.0, 0, 0.0, 0
     worst_cu = 0.0
-    batch_pos, batch_k, batch_cu = [], [], []
+    batch_pos, batch_k, batch_cu, batch_abs = [], [], [], []
+    worst_abs = 0.0
 
     def flush():
-        nonlocal worst, worst_k, sq, cnt, worst_cu
+        nonlocal worst, worst_k, sq, cnt, worst_cu, worst_abs
         if not batch_pos:
             return
         P = np.concatenate(batch_pos) * 1e-3
@@ -42,7 +48,10 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         k0, k1 = int(K.min()), int(K.max()) + 1
         qf.seek(k0 * 12)
         win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
-        d = np.max(np.abs(q - win[K - k0].astype(float)), axis=1)
+        qi = win[K - k0].astype(float)
+        d = np.max(np.abs(q - qi), axis=1)
+        da = np.max(np.abs(inverse(geom, np.concatenate(batch_abs) * 1e-3) - qi), axis=1)
+        worst_abs = max(worst_abs, float(np.nanmax(da)))
         if CU.any():
             worst_cu = max(worst_cu, float(np.max(d[CU])))
             d = np.where(CU, 0.0, d)
@@ -54,10 +63,13 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         batch_pos.clear()
         batch_k.clear()
         batch_cu.clear()
+        batch_abs.clear()
 
     scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
-                         "decel_t_s")
+                         "decel_t_s", "t_start_s")
     buf: list = []
+    anchor: dict[int, float] = {}  # stream -> print time of its sample 0 in the re-planned output
+    drift = {"max": 0.0, "at": 0.0, "end": 0.0}
 
     def flush_moves():
         if not buf:
@@ -75,16 +87,41 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         j = np.minimum(np.searchsorted(seg_lines, ln), max(len(seg_lines) - 1, 0))
         ok = (seg_lines[j] == ln) if len(seg_lines) else np.zeros(len(ln), bool)
         R, geo, j = R[ok], geo[ok], j[ok]
-        ka, kb, cu = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool)
+        if not len(R):
+            return
+        ka, kb, cu, stream = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool), tab[j, 4]
+        dur = R[:, 4] + R[:, 5] + R[:, 6]
+        t0 = R[:, 7]
+        # the absolute clock: a stream's sample k is due at anchor + k dt, the anchor being where the
+        # re-planned output starts the stream's first segment
+        for s_ in np.unique(stream).tolist():
+            if s_ not in anchor:
+                first = int(np.argmax(stream == s_))
+                anchor[s_] = float(t0[first] - ka[first] * dt)
+        c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
+            np.full(len(R), next(iter(anchor.values())))
+        late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
+        if _DEBUG is not None:
+            _DEBUG.append(np.stack([kb * dt, late, R[:, 0]], 1))
+        i = int(np.argmax(np.abs(late)))
+        if abs(late[i]) > abs(drift["max"]):
+            drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
+        drift["end"] = float(late[-1])
         cnt = kb - ka
         idx = np.repeat(np.arange(len(R)), cnt)
         k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
-        dur = R[:, 4] + R[:, 5] + R[:, 6]
-        tau = np.minimum(k * dt, dur[idx])
-        s_ = _distance_v(R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5], tau)
-        P = geo[idx, :3] + s_[:, None] * geo[idx, 3:]
+        kk = ka[idx] + k
+        # the shape: each segment at the same share of its own duration (the limit applies to
+        # this; the timing is the drift's business); the absolute clock: where the output is when
+        # the command is due (drift included; reported)
+        tau_own = k / cnt[idx] * dur[idx]
+        tau_abs = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
+        a_, v0, vc, ta, tc = R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5]
+        P = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_own)[:, None] * geo[idx, 3:]
+        Pa = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_abs)[:, None] * geo[idx, 3:]
         batch_pos.append(P)
-        batch_k.append(ka[idx] + k)
+        batch_abs.append(Pa)
+        batch_k.append(kk)
         batch_cu.append(cu[idx])
         flush()
 
@@ -102,14 +139,37 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
     summ.self_check_catch_up_max_um = worst_cu * 1e6
-    if worst_cu * 1e6 > 4 * opts.self_check_tol_um:
+    summ.self_check_drift_ms = drift["max"] * 1e3
+    summ.self_check_drift_at_s = drift["at"]
+    summ.self_check_drift_end_ms = drift["end"] * 1e3
+    summ.self_check_abs_max_um = worst_abs * 1e6
+    lim_um = shape_limit_um(opts)
+    if abs(drift["max"]) * 1e3 > TIMING_NOTE_MS:
+        summ.warnings += 1
+        summ.notes.append(
+            f"timing: the re-planned output runs up to {drift['max'] * 1e3:+.2f} ms off the intended clock "
+            f"(near t = {drift['at']:.3f} s; {drift['end'] * 1e3:+.2f} ms at the end), up to {worst_abs * 1e6:.0f} um "
+            f"from the intended carriage commands at the same time: the firmware's limits (max_z_accel, the "
+            f"extruder's) do not let those segments run in their time")
+    if abs(drift["max"]) * 1e3 > opts.self_check_drift_ms:
+        raise SelfCheckError(
+            f"self-check failed: the re-planned output runs {drift['max'] * 1e3:+.1f} ms off the intended clock "
+            f"near t = {drift['at']:.3f} s (limit {opts.self_check_drift_ms:g} ms). Nothing was written.")
+    if worst_cu * 1e6 > 4 * lim_um:
         raise SelfCheckError(
             f"self-check failed: a catch-up after an extruder-only move or dwell strays {worst_cu * 1e6:.1f} um "
-            f"from the intended carriage commands (limit {4 * opts.self_check_tol_um:g} um). Nothing was written.")
-    if worst * 1e6 > opts.self_check_tol_um:
+            f"from the intended carriage commands (limit {4 * lim_um:g} um). Nothing was written.")
+    if worst * 1e6 > lim_um:
         raise SelfCheckError(
             f"self-check failed: the re-planned output strays {worst * 1e6:.1f} um from the intended carriage "
-            f"commands near t = {worst_k * dt:.3f} s (limit {opts.self_check_tol_um:g} um). Nothing was written.")
+            f"commands near t = {worst_k * dt:.3f} s (limit {lim_um:g} um). Nothing was written.")
+
+
+def shape_limit_um(opts) -> float:
+    """The self-check's limit on the shape error, um: ``--self-check-tol-um``, but never below what the
+    point placement tolerance ``--tol-um`` itself allows (a carriage moves up to about twice the
+    nozzle's distance, plus the firmware's ramps)."""
+    return float(max(opts.self_check_tol_um, 3.0 * opts.tol_um))
 
 
 class _SegmentTable:
@@ -119,15 +179,15 @@ class _SegmentTable:
     def __init__(self, path: str | None, head_len: int):
         self.f = open(path, "rb") if path else None
         self.head_len = head_len
-        self.buf = np.zeros((0, 4), np.int64)
+        self.buf = np.zeros((0, SEG_COLS), np.int64)
 
     def upto(self, line: int) -> np.ndarray:
         """Rows of output lines ``<= line`` not returned before (lines shifted by the header)."""
         while self.f is not None and (not len(self.buf) or self.buf[-1, 0] <= line):
-            raw = self.f.read(32 * 65536)
+            raw = self.f.read(8 * SEG_COLS * 65536)
             if not raw:
                 break
-            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, 4).copy()
+            rows = np.frombuffer(raw, dtype=np.int64).reshape(-1, SEG_COLS).copy()
             rows[:, 0] += self.head_len
             self.buf = np.concatenate([self.buf, rows])
         n = int(np.searchsorted(self.buf[:, 0], line, side="right"))

@@ -99,6 +99,10 @@ def simulate_commands(profile, ref: Trajectory, commands: dict[str, np.ndarray],
     return SimReport(ref, runs, wall, quantize)
 
 
+#: how far (s) ``simulate --compare`` searches for the time offset between the two files
+COMPARE_WINDOW_S = 1.0
+
+
 def _pad_to(a: np.ndarray, n: int) -> np.ndarray:
     return a if a.shape[0] >= n else np.vstack([a, np.repeat(a[-1:], n - a.shape[0], axis=0)])
 
@@ -130,12 +134,16 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
         commands[f"{name}@{f:g}{'+z' if shape_z else ''}"] = inverse(profile.geometry_si(), xyz)
     if compare:
         other = load_gcode_trajectory(profile, compare)
-        n = max(ref.t_s.shape[0], other.t_s.shape[0])
         dt = float(ref.t_s[1] - ref.t_s[0])
+        # a compensated file starts with a pre-roll (rest and pre-actuation before the first move):
+        # align the records by their actual time offset, searched over a wide window
+        k = metrics.time_offset_samples(ref.xyz_m, other.xyz_m, int(round(COMPARE_WINDOW_S / dt)))
+        q_other = other.q_m[k:] if k >= 0 else np.vstack([np.repeat(other.q_m[:1], -k, 0), other.q_m])
+        n = max(ref.t_s.shape[0], q_other.shape[0])
         ref = Trajectory(ref.name, np.arange(n) * dt, _pad_to(ref.xyz_m, n), _pad_to(ref.q_m, n))
         commands = {k: _pad_to(v, n) for k, v in commands.items()}
         label = Path(compare).name
-        commands[label if label not in commands else f"compare:{label}"] = _pad_to(other.q_m, n)
+        commands[label if label not in commands else f"compare:{label}"] = _pad_to(q_other, n)
     return simulate_commands(profile, ref, commands, quantize=quantize)
 
 

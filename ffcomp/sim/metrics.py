@@ -111,6 +111,41 @@ def best_lag(t_s: np.ndarray, ref: np.ndarray, act: np.ndarray, max_lag_s: float
     return float(best * dt_s)
 
 
+def time_offset_samples(ref: np.ndarray, act: np.ndarray, max_shift: int) -> int:
+    """Whole-sample shift ``k`` (``|k| <= max_shift``) that best aligns ``act[j + k]`` with ``ref[j]``.
+
+    For records whose timelines start at different instants (a compensated file runs a pre-roll of
+    rest and pre-actuation before its first move): the least-squares match of the positions over
+    the overlap, all shifts at once by FFT cross-correlation (positions relative to the first sample
+    of each record, so the rest before motion counts as zero).  Positive: ``act`` runs late.
+    """
+    ref, act = np.asarray(ref, float), np.asarray(act, float)
+    a, b = ref - ref[0], act - act[0]
+    n = len(a) + len(b)
+    nfft = 1 << int(np.ceil(np.log2(max(n, 2))))
+    fa, fb = np.fft.rfft(a, nfft, axis=0), np.fft.rfft(b, nfft, axis=0)
+    xc = np.fft.irfft(np.sum(np.conj(fa) * fb, axis=1), nfft)  # xc[k] = sum_j a[j] b[j + k]
+    # squared error over the overlap: sum b^2 (overlap) - 2 xc + sum a^2 (overlap)
+    ca, cb = np.cumsum(np.sum(a * a, 1)), np.cumsum(np.sum(b * b, 1))
+    best, best_k = math.inf, 0
+    for k in range(-max_shift, max_shift + 1):
+        if k >= 0:
+            m = min(len(a), len(b) - k)
+            if m < 2:
+                continue
+            ea, eb = ca[m - 1], cb[k + m - 1] - (cb[k - 1] if k else 0.0)
+        else:
+            m = min(len(a) + k, len(b))
+            if m < 2:
+                continue
+            ea, eb = ca[-k + m - 1] - ca[-k - 1], cb[m - 1]
+        c = xc[k] if k >= 0 else xc[nfft + k]
+        mse = (ea + eb - 2.0 * c) / m
+        if mse < best:
+            best, best_k = mse, k
+    return best_k
+
+
 def lag_aligned_error(t_s: np.ndarray, ref: np.ndarray, act: np.ndarray,
                       max_lag_s: float = 0.02) -> tuple[np.ndarray, float]:
     """Error ``act(t) - ref(t - lag)`` after the :func:`best_lag` shift.

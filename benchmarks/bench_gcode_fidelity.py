@@ -1,0 +1,104 @@
+"""Benchmark: how much of the exact commands' gain the compensated G-code keeps, and its timing.
+
+Run: ``python benchmarks/bench_gcode_fidelity.py [--quick]``.  For the default profile and for
+``samples/profiles/other_delta.toml`` (compensated with the identified profile, simulated on
+``other_delta_truth.toml``), on generated files (layer changes with z-hops and retractions, 60 mm
+squares at the centre and 100 mm off, a 64-segment circle, a zig-zag, pure z travel): the
+lag-aligned and contour RMS of the exact commands and of the G-code as a fraction of the
+uncompensated file's, the kept share of the exact commands' reduction, and the largest drift of
+the re-planned output on the absolute clock (ms).  Prints a Markdown table per profile.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "samples"))
+
+import make_samples as ms  # noqa: E402
+
+from ffcomp.pipeline.compensate_flow import CompensateOptions  # noqa: E402
+from ffcomp.pipeline.output_check import check_gcode_output  # noqa: E402
+from ffcomp.profile import default_profile, load_profile  # noqa: E402
+
+HEAD = ["G90", "M82", "G92 E0"]
+
+
+def _file(limits: list[str], pw: "ms.PathWriter") -> str:
+    # no G28: the check compares one compensation stream from the start position
+    return "\n".join(HEAD + limits + pw.lines) + "\n"
+
+
+def files(quick: bool) -> dict[str, str]:
+    """The benchmark's G-code files (deterministic), name -> text."""
+    layers = 2 if quick else 3
+    z = ["G1 X0 Y0 Z5 F6000"]
+    for _ in range(1 if quick else 3):
+        z += ["G1 Z25 F6000", "G1 Z5", "G1 X10 Y0 Z8", "G1 X0 Y0 Z5"]
+    out = {
+        "square 60 mm, 150 mm/s, layers": _file(ms.ACCEL_10K, ms.stress_square(0, 0, layers=layers, laps=1)),
+        "square 40 mm @ (80,0)": _file(ms.ACCEL_10K, ms.stress_square(80.0, 0, side=40.0, layers=layers, laps=1)),
+        "circle 64 seg, 200 mm/s, 5000": _file(["SET_VELOCITY_LIMIT ACCEL=5000", "M204 S5000"],
+                                               ms.stress_circle(layers=layers, laps=1, feed=12000)),
+        "zig-zag 250 mm/s": _file(["SET_VELOCITY_LIMIT VELOCITY=300 ACCEL=10000", "M204 S10000"],
+                                  ms.stress_zigzag(length=30.0, layers=1 if quick else 2)),
+        "z travel 100 mm/s": "\n".join(HEAD + ms.ACCEL_10K + z) + "\n",
+    }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true", help="shorter files")
+    ap.add_argument("--z-mode", default=None, help="CompensateOptions.z_mode (default: the default)")
+    ap.add_argument("--pin-holds", default=None, choices=["0", "1"], help="CompensateOptions.pin_holds")
+    ap.add_argument("--only", default=None, help="only files whose name contains this")
+    ap.add_argument("--profiles", default="default,other_delta")
+    a = ap.parse_args()
+    profiles = {"default": (default_profile(), None),
+                "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
+                                load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
+    tmp = Path(tempfile.mkdtemp(prefix="bench_fidelity_"))
+    extra = {}
+    if a.z_mode:
+        extra["z_mode"] = a.z_mode
+    if a.pin_holds:
+        extra["pin_holds"] = a.pin_holds == "1"
+    for pname, (prof, truth) in profiles.items():
+        if pname not in a.profiles.split(","):
+            continue
+        print(f"\n### {pname}\n")
+        print("| file | exact lag | G-code lag | exact contour | G-code contour | kept lag | kept contour "
+              "| drift max (ms) |")
+        print("|---|---|---|---|---|---|---|---|")
+        for name, text in files(a.quick).items():
+            if a.only and a.only not in name:
+                continue
+            src = tmp / "in.gcode"
+            src.write_text(text)
+            try:
+                c = check_gcode_output(prof, src, tmp / "out.gcode", plant_profile=truth,
+                                       opts=CompensateOptions(predict=False, self_check_tol_um=1e9,
+                                                              self_check_drift_ms=1e9, **extra))
+            except Exception as e:  # a failing case is a row, not the end of the table
+                print(f"| {name} | failed: {type(e).__name__}: {str(e)[:80]} |||||||")
+                continue
+            n, e, g = c.none, c.exact, c.gcode
+            nl = n.lag.rms_norm_um
+            print(f"| {name} | {e.lag.rms_norm_um / nl:.3f} | {g.lag.rms_norm_um / nl:.3f} "
+                  f"| {e.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | "
+                  f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
+                  f"{c.kept('contour'):.2f} | {c.summary.self_check_drift_ms:+.3f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

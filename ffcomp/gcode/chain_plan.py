@@ -1,0 +1,164 @@
+"""Klipper's plan of a chain of straight G1 segments, vectorised (the writer's timing model).
+
+The compensated G-code is a long chain of short segments whose feed rates carry the timing.  The
+writer must know, for candidate feed rates, how long Klipper will take over every segment; running
+:class:`~ffcomp.gcode.klipper.KlipperPlanner` move by move inside the feed solve would be far too
+slow, so this module computes the same plan for a whole chain at once with numpy:
+
+* per-segment limits as Klipper's ``Move`` / delta ``check_move`` / extruder ``check_move`` apply
+  them (:func:`segment_limits`): the toolhead's velocity and acceleration, the delta rules
+  ``max_z_velocity * d/|dz|`` and ``max_z_accel * d/|dz|``, the slow zones near the rim and the
+  extruder's limits on retracting or z-only segments;
+* junction limits (:func:`junction_v2`): both cruise speeds, the corner rule with
+  ``square_corner_velocity``, the extruder's ``instantaneous_corner_velocity / |delta e ratio|``;
+* the lookahead (:func:`plan_chain`): the forward reachability ``v2 <= v2_prev + 2 d a`` and the
+  backward pass are min-plus recurrences, solved in closed form with cumulative sums and running
+  minima; then Klipper's ``set_junction`` trapezoid for every segment.
+
+With ``minimum_cruise_ratio = 0`` (the compensated file's header sets it) Klipper's smoothed
+("accel_to_decel") pass equals the plain one and its delayed full-acceleration moves end up on the
+same trapezoids, so the plan is exact; ``tests/test_chain_plan.py`` checks it against the
+move-by-move planner.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .junction import klipper_junction_deviation
+from .klipper import KlipperDelta
+
+__all__ = ["ChainLimits", "segment_limits", "junction_v2", "plan_chain"]
+
+
+class ChainLimits:
+    """The firmware numbers a chain's plan depends on (config values and the header's run-time ones).
+
+    Parameters
+    ----------
+    profile : PrinterProfile
+        ``[printer]`` config: max_velocity, max_accel (the delta's slow zones use these),
+        max_z_velocity, max_z_accel, the extruder's limits.
+    accel_mm_s2 : float
+        The run-time ACCEL (the header's ``SET_VELOCITY_LIMIT``).
+    square_corner_velocity_mm_s : float
+        The run-time SQUARE_CORNER_VELOCITY.
+    """
+
+    def __init__(self, profile, accel_mm_s2: float, square_corner_velocity_mm_s: float):
+        lim = profile.limits
+        kin = KlipperDelta(profile, lim.max_velocity_mm_s, lim.max_accel_mm_s2)
+        self.max_velocity = lim.max_velocity_mm_s
+        self.accel = float(accel_mm_s2)
+        self.jd = klipper_junction_deviation(square_corner_velocity_mm_s, self.accel)
+        self.max_z_velocity, self.max_z_accel = kin.max_z_velocity, kin.max_z_accel
+        self.cfg_velocity, self.cfg_accel = kin.max_velocity, kin.max_accel
+        self.slow_xy2, self.very_slow_xy2 = kin.slow_xy2, kin.very_slow_xy2
+        self.instant_corner_v = lim.instantaneous_corner_velocity_mm_s
+        self.max_e_velocity = lim.max_extrude_only_velocity_mm_s
+        self.max_e_accel = lim.max_extrude_only_accel_mm_s2
+
+
+def segment_limits(lim: ChainLimits, start: np.ndarray, end: np.ndarray, de: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Speed cap (mm/s, before the feed rate) and acceleration (mm/s^2) of every segment.
+
+    ``start``, ``end``: (n, 3) XYZ in mm (as printed); ``de``: (n,) extrusion in mm.
+    """
+    d = end - start
+    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    vmax = np.full(len(dist), lim.max_velocity)
+    acc = np.full(len(dist), lim.accel)
+    dz = np.abs(d[:, 2])
+    z = dz > 0
+    if z.any():
+        ratio = dist[z] / dz[z]
+        vmax[z] = np.minimum(vmax[z], lim.max_z_velocity * ratio)
+        acc[z] = np.minimum(acc[z], lim.max_z_accel * ratio)
+    xy2 = np.maximum(start[:, 0] ** 2 + start[:, 1] ** 2, end[:, 0] ** 2 + end[:, 1] ** 2)
+    slow = xy2 > lim.slow_xy2
+    if slow.any():
+        r = np.where(xy2[slow] > lim.very_slow_xy2, 0.25, 0.5)
+        vmax[slow] = np.minimum(vmax[slow], lim.cfg_velocity * r)
+        acc[slow] = np.minimum(acc[slow], lim.cfg_accel * r)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        er = np.where(dist > 0, de / dist, 0.0)
+    ext = (de != 0) & ((er < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
+    if ext.any():
+        inv = 1.0 / np.abs(er[ext])
+        vmax[ext] = np.minimum(vmax[ext], lim.max_e_velocity * inv)
+        acc[ext] = np.minimum(acc[ext], lim.max_e_accel * inv)
+    return vmax, acc
+
+
+def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.ndarray,
+                delta_v2: np.ndarray) -> np.ndarray:
+    """Corner and extruder limits on v^2 at the start of segments ``1..n-1`` (length ``n - 1``).
+
+    ``unit``: (n, 3) unit directions; ``erat``: (n,) extrusion per mm; ``acc``, ``delta_v2``: each
+    segment's acceleration and ``2 d a``.  Cruise-speed limits are applied by :func:`plan_chain`.
+    """
+    cos = -np.einsum("ij,ij->i", unit[1:], unit[:-1])
+    sin2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
+    cos2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
+    oms = 1.0 - sin2
+    ok = (oms > 0) & (cos2 > 0)
+    out = np.full(len(cos), np.inf)
+    if ok.any():
+        r_jd = sin2[ok] / oms[ok]
+        qt = 0.25 * sin2[ok] / cos2[ok]
+        a1, a0 = acc[1:][ok], acc[:-1][ok]
+        d1, d0 = delta_v2[1:][ok], delta_v2[:-1][ok]
+        out[ok] = np.minimum.reduce([r_jd * lim.jd * a1, r_jd * lim.jd * a0, d1 * qt, d0 * qt])
+    diff = np.abs(erat[1:] - erat[:-1])
+    with np.errstate(divide="ignore"):
+        ev2 = np.where(diff > 0, (lim.instant_corner_v / np.where(diff > 0, diff, 1.0)) ** 2, np.inf)
+    return np.minimum(out, ev2)
+
+
+def plan_chain(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2: np.ndarray,
+               start_v2: float, end_v2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Klipper's lookahead over a chain: durations and entry/exit speeds of every segment.
+
+    Parameters
+    ----------
+    dist : (n,) segment lengths, mm (all > 0)
+    cruise_v2 : (n,) largest cruise speed squared (feed rate and caps), mm^2/s^2
+    acc : (n,) accelerations, mm/s^2
+    junc_v2 : (n,) limit on the entry speed squared from the corner and extruder rules (the first
+        entry: how fast the chain may be entered, e.g. 0 from rest)
+    start_v2 : float
+        Largest speed squared the chain can be entered with (the previous segment's reachable speed).
+    end_v2 : float
+        Speed squared the chain must be able to leave with (0: the firmware stops after it).
+
+    Returns
+    -------
+    dur : (n,) durations, s
+    v_in, v_out : (n,) entry and exit speeds, mm/s
+    """
+    n = len(dist)
+    delta = 2.0 * dist * acc
+    # junction: both cruise speeds and the rules
+    J = np.empty(n)
+    J[0] = min(junc_v2[0], cruise_v2[0], start_v2)
+    J[1:] = np.minimum.reduce([junc_v2[1:], cruise_v2[1:], cruise_v2[:-1]])
+    # forward: ms_i = min(J_i, ms_{i-1} + delta_{i-1}) = S_i + cummin(J_k - S_k)
+    S = np.concatenate([[0.0], np.cumsum(delta)])
+    ms = S[:-1] + np.minimum.accumulate(J - S[:-1])
+    # backward: s_i = min(ms_i, s_{i+1} + delta_i), s_n = end_v2
+    tail = np.concatenate([ms + S[:-1], [end_v2 + S[-1]]])
+    sv = np.minimum.accumulate(tail[::-1])[::-1] - S
+    s_in, s_out = sv[:-1], sv[1:]
+    cruise = np.minimum((s_in + s_out + delta) * 0.5, cruise_v2)
+    cruise = np.maximum(cruise, s_in)
+    e_out = np.minimum(s_out, cruise)
+    vi, vc, vo = np.sqrt(np.maximum(s_in, 0)), np.sqrt(cruise), np.sqrt(np.maximum(e_out, 0))
+    half_inv = 0.5 / acc
+    accel_d = (cruise - s_in) * half_inv
+    decel_d = (cruise - e_out) * half_inv
+    cruise_d = np.maximum(dist - accel_d - decel_d, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (np.where(accel_d > 0, accel_d / ((vi + vc) * 0.5), 0.0) + cruise_d / vc
+             + np.where(decel_d > 0, decel_d / ((vo + vc) * 0.5), 0.0))
+    return t, vi, vo

@@ -1,0 +1,268 @@
+"""Feed rates that make Klipper run a chain of G1 segments on the intended absolute clock.
+
+The writer gives every segment an intended duration (the time between its two compensated samples).
+Klipper, though, enters and leaves each segment at junction speeds and ramps at its acceleration
+limits (the delta's ``max_z_accel * d/|dz|`` among them), so ``F = length / duration`` runs late,
+and the lateness adds up over a file.  :func:`solve_feeds` instead closes the loop on the absolute
+clock: it plans the written chain as Klipper will (:func:`ffcomp.gcode.chain_plan.plan_chain`),
+compares every segment's end with its intended time and corrects the feed rates, a few sweeps over
+the chunk.  A segment asked to start late (because one before it could not be run in its time, e.g.
+a catch-up from rest) is asked to be shorter by that much, so lateness never accumulates: it is
+recovered as soon as the limits allow.  The chain's last segments stay open (their exit speed
+depends on the next chunk): they are re-planned, feeds fixed, together with the next chunk.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits
+
+__all__ = ["TimingState", "solve_feeds", "extrude_only_feed", "extrude_only_time"]
+
+#: written segments kept open for the next chunk's plan
+TAIL = 48
+#: sweeps of the feed correction
+SWEEPS = 8
+#: rounds of handing lateness on to the segments after one that could not take its share
+RECOVERY_ROUNDS = 3
+#: rounds of waiting out time gained ahead of the clock
+AHEAD_ROUNDS = 3
+#: exponent of the feed update (below 1: damped, for segments coupled through their junctions)
+GAIN = 1.0
+#: a segment is never asked to run in less than this share of its intended time (nor the
+#: feed raised beyond 1 / this of the plain length / duration)
+MIN_SHARE = 0.4
+
+
+@dataclass
+class TimingState:
+    """What the solve carries from one chunk to the next, and its running statistics."""
+
+    late_s: float = 0.0  #: lateness at the end of what is written (s; open tail: provisional)
+    #: the open tail: start, end (n, 3), extrusion, feed (mm/s), intended duration (s)
+    tail: tuple | None = None
+    tail_late_s: float = 0.0  #: lateness at the tail's start
+    tail_v2: float = 0.0  #: entry speed squared of the tail's first segment
+    max_late_s: float = 0.0  #: largest |lateness| at a segment end so far
+    late_segments: int = 0  #: segments that end more than 0.1 ms off their intended time
+    infeasible_s: float = 0.0  #: time the limits did not let the feeds recover at once
+    stats: dict = field(default_factory=dict)
+
+
+def extrude_only_feed(de: np.ndarray, t: np.ndarray, accel: float, vmax: float) -> np.ndarray:
+    """Feed (mm/s) that makes an extruder-only move of ``|de|`` from rest to rest last ``t``.
+
+    From rest to rest at acceleration ``accel``: ``t = |de| / v + v / accel`` for ``v^2 <= accel |de|``;
+    the smaller root is the one with a cruise.  Where ``t`` is too short, the triangle's peak speed.
+    """
+    L = np.abs(de)
+    disc = (t * accel) ** 2 - 4.0 * accel * L
+    v = np.where(disc >= 0, 0.5 * (t * accel - np.sqrt(np.maximum(disc, 0.0))), np.sqrt(accel * L))
+    return np.clip(v, 1e-3, vmax)
+
+
+def extrude_only_time(de: np.ndarray, v: np.ndarray, accel: float) -> np.ndarray:
+    """Duration (s) of extruder-only moves of ``|de|`` at feed ``v`` from rest to rest."""
+    L = np.abs(de)
+    v = np.minimum(v, np.sqrt(accel * L))
+    return L / v + v / accel
+
+
+def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_open, F0):
+    """Feeds of one chain (segments not free keep ``F0``); returns feeds, the lateness at each
+    segment end and the entry speeds.
+
+    1. Every free segment's feed is corrected towards its own intended duration (a few sweeps:
+       the junctions couple neighbours only weakly); time gained ahead on entry is waited out by
+       the first segment.
+    2. Segments that cannot be run in their time (the limits bind) leave lateness, which the
+       segments after them take back as fast as they can run (at most ``1 / MIN_SHARE`` times
+       their plain speed): the queue recursion ``L_i = max(0, L_{i-1} + lo_i - D_i)`` over the
+       fastest durations ``lo``, solved in closed form; a few sweeps aim every segment at its
+       share; a segment that fell short hands the rest on in the next round.  A round is kept
+       only if it lowers the summed squared lateness.
+    3. Stretches that ended up ahead of the clock (a recovery overshot) are waited out.
+    """
+    d = P1 - P0
+    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    vmax, acc = segment_limits(lim, P0, P1, de)
+    unit = d / dist[:, None]
+    jv = np.concatenate([[np.inf], junction_v2(lim, unit, de / dist, acc, 2.0 * dist * acc)])
+    Fmax = dist / (MIN_SHARE * D)
+
+    def plan(F):
+        cv2 = np.minimum(F, vmax) ** 2
+        return plan_chain(dist, cv2, acc, jv, start_v2, cv2[-1] if end_open else 0.0)
+
+    def sweeps(F, want, n, floor=None):
+        for _ in range(n):
+            t = plan(F)[0]
+            F = np.where(free, np.clip(F * (t / want) ** GAIN, 1e-3, Fmax), F)
+            if floor is not None:  # recovering: never slower than on the plain clock
+                F = np.maximum(F, floor)
+        return F
+
+    # ahead of the clock on entry (an extruder-only move written faster than planned): the first
+    # free segment waits it out
+    wantA = D.copy()
+    if late0 < 0 and free.any():
+        k = int(np.argmax(free))
+        wantA[k] -= late0
+    F = FA = sweeps(F0.copy(), wantA, SWEEPS // 2)
+    # the fastest each segment can run (all free segments at their fastest: the junction rules
+    # and the limits still bind), then the queue recursion for the lateness left after each one
+    # when every late segment runs as fast as it can: L_i = max(0, L_{i-1} + lo_i - D_i)
+    lo = plan(np.where(free, np.minimum(Fmax, vmax), F))[0]
+
+    def cost(F_):
+        return float(np.sum((late0 + np.cumsum(plan(F_)[0] - D)) ** 2))
+
+    best, best_cost = F, cost(F)
+    for _ in range(RECOVERY_ROUNDS):
+        S = late0 + np.cumsum(lo - D)
+        L = S - np.minimum(0.0, np.minimum.accumulate(S))
+        L_prev = np.concatenate([[late0], L[:-1]])
+        want = np.maximum(D + L - L_prev, lo)
+        if not np.any(np.abs(want - D) > 1e-9):
+            break
+        FB = sweeps(best, want, SWEEPS // 2, floor=FA)
+        t = plan(FB)[0]
+        c = cost(FB)
+        # keep the recovery only where it helps (the junctions couple the segments, so the
+        # fastest durations are estimates); a segment that fell short of its share was slower
+        # than estimated: the next round hands the rest on
+        if c < best_cost:
+            best, best_cost = FB, c
+        short = free & (t > want * (1 + 1e-3) + 1e-7)
+        if not short.any():
+            break
+        lo = np.where(short, np.maximum(lo, t), lo)
+    # ahead of the clock somewhere (a recovery overshot): the first segment of each stretch that
+    # starts ahead waits it out, a few rounds
+    for _ in range(AHEAD_ROUNDS):
+        late_end = late0 + np.cumsum(plan(best)[0] - D)
+        ls = np.concatenate([[late0], late_end[:-1]])
+        ahead = free & (ls < -1e-5)
+        first = ahead & ~np.r_[False, ahead[:-1]]
+        if not first.any():
+            break
+        FC = sweeps(best, np.where(first, D - ls, plan(best)[0]), SWEEPS // 2)
+        c = cost(FC)
+        if c >= best_cost:
+            break
+        best, best_cost = FC, c
+    F = best
+    t, vin, _ = plan(F)
+    return F, late0 + np.cumsum(t - D), vin
+
+
+def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarray, D: np.ndarray,
+                de: np.ndarray, hold: np.ndarray, stop_first: np.ndarray, open_end: bool,
+                pre_late: np.ndarray | None = None) -> np.ndarray:
+    """Feed rates (mm/s) of a chunk's segments, in written order.
+
+    Parameters
+    ----------
+    lim : the firmware's limits
+    st : carried state (updated)
+    P0, P1 : (n, 3) segment start and end as printed, mm
+    D : (n,) intended durations, s
+    de : (n,) extrusion of each segment, mm
+    hold : (n,) segments written as ``G4`` or extruder-only lines (the firmware stops there); their
+        value is the extruder feed (mm/s), or for a ``G4`` its duration (s)
+    stop_first : (n,) the firmware stands still before this segment (an extruder-only move or a
+        dwell was written just before it)
+    open_end : bool
+        The chunk ends in motion (the next chunk continues the chain).
+    pre_late : (n,), optional
+        Lateness (s) that lines written just before a segment (extruder-only moves, dwells) add.
+    """
+    n = len(D)
+    F = np.zeros(n)
+    if pre_late is None:
+        pre_late = np.zeros(n)
+    moving = ~hold
+    # chains: runs of moving segments; a hold or a stop starts a new one
+    brk = hold | stop_first
+    idx = np.arange(n)
+    starts = idx[moving & (np.r_[True, brk[1:] | hold[:-1]] | stop_first)]
+    # a chain ends before the next hold or stop
+    ends_at = np.nonzero(brk)[0]
+    e_of = ends_at[np.minimum(np.searchsorted(ends_at, starts, side="right"), len(ends_at) - 1)] \
+        if len(ends_at) else np.full(len(starts), n)
+    e_of = np.where(e_of > starts, e_of, n)
+    chains = list(zip(starts.tolist(), e_of.tolist()))
+    first_chain_continues = bool(chains) and chains[0][0] == 0 and not stop_first[0]
+    if st.tail is not None and not first_chain_continues:
+        _close_tail(lim, st)
+    k_hold = 0
+    hold_idx = np.nonzero(hold)[0]
+    for c, (a, b) in enumerate(chains):
+        # the holds before this chain
+        for h in hold_idx[np.searchsorted(hold_idx, k_hold):np.searchsorted(hold_idx, a)].tolist():
+            st.late_s += pre_late[h]
+            F[h] = _hold(lim, st, de[h], D[h])
+        k_hold = b
+        st.late_s += pre_late[a]
+        sl = slice(a, b)
+        Fa = np.linalg.norm(P1[sl] - P0[sl], axis=1) / D[sl]
+        end_open = open_end and b == n
+        if c == 0 and first_chain_continues and st.tail is not None:
+            t0, t1, tde, tF, tD = st.tail
+            q0, q1 = np.vstack([t0, P0[sl]]), np.vstack([t1, P1[sl]])
+            dd = np.concatenate([tde, de[sl]])
+            DD = np.concatenate([tD, D[sl]])
+            FF = np.concatenate([tF, Fa])
+            free = np.r_[np.zeros(len(tF), bool), np.ones(b - a, bool)]
+            Fs, late_end, vin = _solve_chain(lim, q0, q1, dd, DD, free, st.tail_late_s, st.tail_v2, end_open, FF)
+            nt = len(tF)
+            F[sl] = Fs[nt:]
+            late_start0 = st.tail_late_s
+        else:
+            q0, q1, dd, DD, FF = P0[sl], P1[sl], de[sl], D[sl], Fa
+            free = np.ones(b - a, bool)
+            Fs, late_end, vin = _solve_chain(lim, q0, q1, dd, DD, free, st.late_s, 0.0, end_open, FF)
+            F[sl] = Fs
+            late_start0 = st.late_s
+        st.max_late_s = max(st.max_late_s, float(np.max(np.abs(late_end))))
+        st.late_segments += int(np.sum(np.abs(late_end[free]) > 1e-4))
+        st.late_s = float(late_end[-1])
+        if end_open:
+            k = max(0, len(Fs) - TAIL)
+            late_starts = np.concatenate([[late_start0], late_end[:-1]])
+            st.tail = (q0[k:], q1[k:], dd[k:], Fs[k:], DD[k:])
+            st.tail_late_s = float(late_starts[k])
+            st.tail_v2 = float(vin[k] ** 2)
+        else:
+            st.tail = None
+    for h in hold_idx[np.searchsorted(hold_idx, k_hold):].tolist():
+        st.late_s += pre_late[h]
+        F[h] = _hold(lim, st, de[h], D[h])
+    return F
+
+
+def _close_tail(lim: ChainLimits, st: TimingState) -> None:
+    """The chain left open by the last chunk ends here (the firmware stops): its final lateness."""
+    t0, t1, tde, tF, tD = st.tail
+    free = np.zeros(len(tF), bool)
+    _, late_end, _ = _solve_chain(lim, t0, t1, tde, tD, free, st.tail_late_s, st.tail_v2, False, tF)
+    st.late_s = float(late_end[-1])
+    st.max_late_s = max(st.max_late_s, float(np.max(np.abs(late_end))))
+    st.tail = None
+
+
+def _hold(lim: ChainLimits, st: TimingState, de: float, D: float) -> float:
+    """A hold segment: a ``G4`` (returns its duration, s: a rest gives back any lateness) or an
+    extruder-only move timed as Klipper runs it (returns its feed, mm/s)."""
+    if abs(de) <= 1e-9:
+        dwell = max(D - st.late_s, 0.0)
+        st.late_s += dwell - D
+        return dwell
+    want = max(D - st.late_s, MIN_SHARE * D)
+    v = float(extrude_only_feed(np.array([de]), np.array([want]), lim.max_e_accel, lim.max_e_velocity)[0])
+    t = float(extrude_only_time(np.array([de]), np.array([v]), lim.max_e_accel)[0])
+    st.late_s += t - D
+    return v

@@ -1,0 +1,136 @@
+"""Timing on the absolute clock: the closed-loop feed solve, the self-check's drift, the header's
+firmware values, and ``simulate --compare`` aligning a pre-rolled output."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ffcomp.gcode import feed_solve as fs
+from ffcomp.gcode.chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits
+from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
+from ffcomp.pipeline.header import klipper_snippet, read_firmware_needs
+from ffcomp.profile import load_profile
+from ffcomp.sim.metrics import time_offset_samples
+
+ROOT = Path(__file__).resolve().parents[1]
+OTHER = ROOT / "samples" / "profiles" / "other_delta.toml"
+SQUARE = ["G90", "M83", "SET_VELOCITY_LIMIT ACCEL=10000", "G1 X-20 Y-20 Z5 F6000", "G4 P0"]
+for _ in range(2):
+    SQUARE += ["G1 X20 Y-20 E1.5 F9000", "G1 X20 Y20 E1.5", "G1 X-20 Y20 E1.5", "G1 X-20 Y-20 E1.5"]
+
+
+def _trapezoid_chain(v=150.0, ta=0.015, T=0.6, step_ms=5):
+    a = v / ta
+
+    def s_of(t):
+        return np.where(t < ta, 0.5 * a * t * t, np.where(t < T - ta, 0.5 * a * ta * ta + v * (t - ta),
+                        0.5 * a * ta * ta + v * (T - 2 * ta) + v * (t - (T - ta)) - 0.5 * a * (t - (T - ta)) ** 2))
+
+    k = np.arange(0, int(T * 1000) + 1, step_ms)
+    P = np.zeros((len(k), 3))
+    P[:, 0] = s_of(k * 1e-3)
+    P[:, 2] = 5.0
+    return P[:-1], P[1:], np.diff(k) * 1e-3
+
+
+def test_feed_solve_puts_every_segment_end_on_the_intended_clock(profile):
+    """A trapezoid sampled into segments: plain length / duration runs late at every ramp; the
+    closed-loop feeds end every segment on its intended time (checked by an independent re-plan)."""
+    lim = ChainLimits(profile, 2e5, 100.0)
+    P0, P1, D = _trapezoid_chain()
+    n = len(D)
+    zero = np.zeros(n)
+    F = fs.solve_feeds(lim, fs.TimingState(), P0, P1, D, zero, zero.astype(bool), zero.astype(bool), False)
+    d = P1 - P0
+    dist = np.linalg.norm(d, axis=1)
+    vmax, acc = segment_limits(lim, P0, P1, zero)
+    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero, acc, 2 * dist * acc)])
+
+    def late(feed):
+        t = plan_chain(dist, np.minimum(feed, vmax) ** 2, acc, jv, 0.0, 0.0)[0]
+        return np.abs(np.cumsum(t - D)).max()
+
+    assert late(dist / D) > 2e-4  # the naive feeds drift
+    assert late(F) < 1e-6
+
+
+def test_extrude_only_feed_round_trip():
+    de, t = np.array([0.8, 0.05, 2.0]), np.array([0.05, 0.02, 0.1])
+    v = fs.extrude_only_feed(de, t, 3000.0, 120.0)
+    np.testing.assert_allclose(fs.extrude_only_time(de, v, 3000.0), t, rtol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def square_runs(tmp_path_factory, profile):
+    d = tmp_path_factory.mktemp("timing")
+    src = d / "sq.gcode"
+    src.write_text("\n".join(SQUARE) + "\n")
+    out = {}
+    for name, prof in (("default", profile), ("other", load_profile(OTHER))):
+        o = d / f"sq_{name}.gcode"
+        out[name] = (src, o, compensate_file(str(src), str(o), prof, CompensateOptions(predict=False)))
+    return out
+
+
+@pytest.mark.parametrize("name", ["default", "other"])
+def test_drift_on_the_absolute_clock_is_reported_and_small(square_runs, name):
+    _, _, s = square_runs[name]
+    assert s.self_check_drift_ms is not None and s.self_check_abs_max_um is not None
+    assert abs(s.self_check_drift_ms) < 0.2  # a flat square: every segment on time
+    assert s.self_check_abs_max_um >= s.self_check_max_um * 0.5
+
+
+def test_header_states_the_firmware_values_and_the_snippet_reads_them(square_runs, profile):
+    _, out, s = square_runs["other"]
+    needs = read_firmware_needs(str(out))
+    assert needs is not None and needs.minimum_cruise_ratio == 0 and needs.accel == s.header_accel_mm_s2
+    assert needs.max_accel >= s.peak_command_accel_mm_s2 * 0.99
+    text = klipper_snippet(needs)
+    assert "[printer]" in text and f"max_z_accel: {needs.max_z_accel:g}" in text
+    # the profile's 3000 mm/s^2 max_velocity/max_z_accel limits are named when the file needs more
+    notes = " ".join(s.notes)
+    for key in ("max_z_accel", "max_velocity"):
+        if getattr(needs, key) > getattr(load_profile(OTHER).limits, key + ("_mm_s2" if "accel" in key else "_mm_s")):
+            assert key in notes
+
+
+def test_firmware_config_cli(square_runs, capsys):
+    from cli_util import run
+
+    _, out, _ = square_runs["default"]
+    code, text, err = run(capsys, "firmware-config", out)
+    assert code == 0, err
+    assert text.startswith("# Klipper printer.cfg") and "max_z_accel:" in text
+
+
+def test_time_offset_finds_a_known_shift():
+    t = np.arange(3000) * 1e-3
+    X = np.stack([np.sin(2 * np.pi * 1.3 * t) * (t > 0.2), np.cos(2 * np.pi * 0.7 * t) * (t > 0.2), 0 * t], 1)
+    for k in (0, 37, -12, 180):
+        Y = np.roll(X, k, axis=0)
+        if k > 0:
+            Y[:k] = X[0]
+        elif k < 0:
+            Y[k:] = X[-1]
+        assert time_offset_samples(X, Y, 300) == k
+
+
+def test_simulate_compare_aligns_a_pre_rolled_output(square_runs, profile):
+    from ffcomp.pipeline.sim_flow import simulate_gcode
+
+    src, out, _ = square_runs["default"]
+    rep = simulate_gcode(profile, src, compare=out)
+    planned, comp = rep.runs[0].report, rep.runs[-1].report
+    assert comp.lag.rms_norm_um < 0.3 * planned.lag.rms_norm_um, (comp.lag.rms_norm_um, planned.lag.rms_norm_um)
+
+
+def test_tol_um_is_honoured_by_the_self_check(tmp_path, profile):
+    """A coarse point placement (--tol-um 50) is not failed by a 50 um self-check limit."""
+    from ffcomp.pipeline.self_check import shape_limit_um
+
+    opts = CompensateOptions(tol_um=50.0, predict=False)
+    assert shape_limit_um(opts) == 150.0 and shape_limit_um(CompensateOptions()) == 50.0
+    s = compensate_file(str(ROOT / "samples" / "gcode" / "stress_square.gcode"), str(tmp_path / "o.gcode"),
+                        profile, opts)
+    assert s.self_check_max_um <= 150.0 and (tmp_path / "o.gcode").exists()
