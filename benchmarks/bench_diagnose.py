@@ -19,11 +19,11 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from ffcomp.diagnose import diagnose  # noqa: E402
-from ffcomp.fit_effects import fit_effects  # noqa: E402
+from ffcomp.loop.diagnose import diagnose  # noqa: E402
+from ffcomp.loop.fit import fit_effects  # noqa: E402
+from ffcomp.loop.validate import validate  # noqa: E402
 from ffcomp.measure.virtual import virtual_measurements  # noqa: E402
 from ffcomp.profile import default_profile  # noqa: E402
-from ffcomp.validate import validate  # noqa: E402
 
 HIDDEN = [{"name": "belt_span", "l1_ref_mm": 320.0, "loop_mm": 1300.0}]
 

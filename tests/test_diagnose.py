@@ -9,10 +9,10 @@ hidden effect nothing is significant; two hidden effects are found by running th
 import numpy as np
 import pytest
 
-from ffcomp.diagnose import diagnose, pose_folds
-from ffcomp.fit_effects import fit_effects
+from ffcomp.loop.diagnose import diagnose, pose_folds
+from ffcomp.loop.fit import fit_effects
+from ffcomp.loop.validate import validate
 from ffcomp.measure.virtual import virtual_measurements
-from ffcomp.validate import validate
 
 F = np.geomspace(5, 400, 100)
 NOISE = 0.02

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ffcomp.errors import MeasurementError, SolverError
-from ffcomp.identify import fit_eq22, identify, sk_fit
+from ffcomp.loop.identify import fit_eq22, identify, sk_fit
 from ffcomp.measure.synthetic import identification_sweeps
 
 TRUE = {"m": 0.177, "c": 5.87, "b": 18.0, "k": 9.44e4, "b_nt": 27.9}

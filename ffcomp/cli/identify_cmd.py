@@ -28,7 +28,7 @@ def identify_cmd(
     Geometry and limits come from --profile (default: the embedded profile); the dynamics are
     replaced by the identified ones.
     """
-    from ..identify import identify
+    from ..loop.identify import identify
     from ..measure.frf_file import load_frf
     from ..profile import save_profile
 

@@ -191,7 +191,7 @@ def diagnose_cmd(
 
 
 def _set_values(items):
-    from ..fit_effects import parse_assignment
+    from ..loop.fit import parse_assignment
 
     out = []
     for s in items or []:

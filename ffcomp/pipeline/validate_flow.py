@@ -60,8 +60,8 @@ def profile_label(profile) -> str:
 
 def run_validate(data, profile, compare=None) -> ValidateRun:
     """Validate ``profile`` (and optionally the ``compare`` profile, as "before") against ``data``."""
-    from ..validate import compare as cmp
-    from ..validate import validate
+    from ..loop.validate import compare as cmp
+    from ..loop.validate import validate
 
     ms, skipped = load_data(data)
     rep = validate(profile, ms, name=profile_label(profile))
@@ -73,7 +73,7 @@ def run_validate(data, profile, compare=None) -> ValidateRun:
 
 def run_diagnose(data, profile, *, candidates=None, folds: int = 4):
     """Diagnose ``profile`` against ``data``; returns ``(Diagnosis, skipped)``."""
-    from ..diagnose import diagnose
+    from ..loop.diagnose import diagnose
 
     ms, skipped = load_data(data)
     return diagnose(profile, ms, candidates=candidates, folds=folds), skipped
@@ -81,7 +81,7 @@ def run_diagnose(data, profile, *, candidates=None, folds: int = 4):
 
 def run_fit(data, profile, add=(), *, set_values=(), free=(), refit: bool = True) -> FitRun:
     """Fit ``add`` (and the profile's own effects unless ``refit`` is False); the new profile."""
-    from ..fit_effects import fit_effects
+    from ..loop.fit import fit_effects
     from ..measure.noise import noise_floor
 
     ms, skipped = load_data(data)
@@ -95,7 +95,7 @@ def run_fit(data, profile, add=(), *, set_values=(), free=(), refit: bool = True
 
 def parse_effect_args(args) -> list[dict]:
     """``NAME``, ``NAME=VALUE``, ``NAME:param=VALUE`` (repeatable) -> profile effect dicts (merged per name)."""
-    from ..fit_effects import parse_assignment
+    from ..loop.fit import parse_assignment
 
     out: dict[str, dict] = {}
     for a in args:

@@ -8,7 +8,7 @@ matrices, every stage honours an effect once it is in the profile's ``[[effects]
 Writing an effect: subclass :class:`Effect`, declare ``name`` and ``params`` (name ->
 :class:`Param`), implement ``apply``, and add the class to :data:`EFFECTS` below.
 
-Optional hooks used by ``ffcomp diagnose`` / ``ffcomp fit`` (:mod:`ffcomp.fit_effects`):
+Optional hooks used by ``ffcomp diagnose`` / ``ffcomp fit`` (:mod:`ffcomp.loop.fit`):
 ``fit`` names the parameters fitted by default (empty: all), :attr:`Param.search` the plausible
 range the fit starts from and is bounded by, ``summary`` a one-line description and
 :meth:`Effect.explain` the fitted values read back in physical words.

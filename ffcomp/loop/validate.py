@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .frf_metrics import complex_residual, r2_magnitude, r2_phase
-from .measure.noise import noise_floor
-from .measure.predict import BatchPredictor, check_measurements, detached
-from .model.lpv import LpvModel
-from .model.modes import modes
+from ..measure.noise import noise_floor
+from ..measure.predict import BatchPredictor, check_measurements, detached
+from ..model.lpv import LpvModel
+from ..model.modes import modes
+from .metrics import complex_residual, r2_magnitude, r2_phase
 
 __all__ = ["BandScore", "MeasurementScore", "ValidationReport", "validate", "compare", "band_edges",
            "TABLE2_AXES"]

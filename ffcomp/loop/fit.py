@@ -8,7 +8,7 @@ minimises the coherence-weighted relative complex error, every measurement count
 
 (``w`` = coherence, or 1).  That keeps the information above the resonances, where the magnitude
 is small but a lag or a delay shows most clearly.  Reports and the held-out scores of
-:mod:`ffcomp.diagnose` use the normalised complex residual of ``ffcomp validate``
+:mod:`ffcomp.loop.diagnose` use the normalised complex residual of ``ffcomp validate``
 (:meth:`Objective.per_measurement`).  Parameters are scaled to their search range (``Param.search``),
 bounded by it, started from the best point of a small grid (plus the defaults or the current
 values) and refined with :func:`scipy.optimize.least_squares` (trust-region reflective).
@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import SolverError
-from .measure.predict import BatchPredictor, check_measurements
-from .model.effects import EFFECTS, load_library
-from .model.lpv import LpvModel
+from ..errors import SolverError
+from ..measure.predict import BatchPredictor, check_measurements
+from ..model.effects import EFFECTS, load_library
+from ..model.lpv import LpvModel
 
 __all__ = ["ParamEstimate", "FitResult", "Objective", "fit_effects", "fit_free", "residuals_of",
            "parse_assignment"]

@@ -18,9 +18,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import MeasurementError, SolverError
-from .frf_metrics import complex_residual, r2_magnitude, r2_phase
-from .measure.frf_file import FrfMeasurement
+from ..errors import MeasurementError, SolverError
+from ..measure.frf_file import FrfMeasurement
+from .metrics import complex_residual, r2_magnitude, r2_phase
 
 __all__ = ["Eq22Fit", "Identification", "fit_eq22", "sk_fit", "identify", "eq22_response"]
 

@@ -2,7 +2,7 @@
 
 For every effect in the library that the profile does not have yet, its parameters (together with
 those of the profile's own effects, which were fitted without it) are fitted to the measurements
-(:mod:`ffcomp.fit_effects`, coherence-weighted complex least squares); refitting the profile's own
+(:mod:`ffcomp.loop.fit`, coherence-weighted complex least squares); refitting the profile's own
 effects alone is one more candidate.  Each is scored by cross-validation **by pose**: the poses
 are split into ``k`` folds; each fold's measurements are predicted with parameters fitted on the
 other folds only.  An effect that merely bends the model towards the noise gains nothing on poses
@@ -23,7 +23,7 @@ noise floor ``nu`` (:mod:`ffcomp.measure.noise`):
 Candidates are ranked by held-out residual, significant ones first; when the profile already has
 effects, a new effect is significant only if it also beats refitting those effects alone by the
 same margins (parsimony).  The evidence in words comes from the fitted values
-(``Effect.explain``) and from the residual's signatures (:mod:`ffcomp.diagnose_evidence`).
+(``Effect.explain``) and from the residual's signatures (:mod:`ffcomp.loop.evidence`).
 """
 
 from __future__ import annotations
@@ -32,12 +32,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .diagnose_evidence import evidence, features
-from .fit_effects import Objective, _model_with, fit_free
-from .measure.noise import noise_floor
-from .measure.predict import BatchPredictor, check_measurements
-from .model.effects import EFFECTS, load_library
-from .model.lpv import LpvModel
+from ..measure.noise import noise_floor
+from ..measure.predict import BatchPredictor, check_measurements
+from ..model.effects import EFFECTS, load_library
+from ..model.lpv import LpvModel
+from .evidence import evidence, features
+from .fit import Objective, _model_with, fit_free
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import spearmanr
 
-from .kinematics import inverse
+from ..kinematics import inverse
 
 __all__ = ["Evidence", "Features", "features", "evidence"]
 
