@@ -32,12 +32,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..measure.noise import noise_floor
+from ..measure.noise import noise_floors
 from ..measure.predict import BatchPredictor, check_measurements
 from ..model.effects import EFFECTS, load_library
 from ..model.lpv import LpvModel
+from .base_fit import BASE, BASE_KEYS, base_spec, explain_base
 from .evidence import evidence, features
-from .fit import Objective, _model_with, fit_free
+from .fit import Objective, _model_with, base_supported, fit_free
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
 
@@ -103,6 +104,7 @@ class Diagnosis:
     evidence: tuple
     verdict: str
     status: str = "ok"
+    noise_note: str = ""
 
     @property
     def noise_floor(self) -> float:
@@ -121,6 +123,7 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {"profile": self.profile, "n_measurements": len(self.labels), "n_poses": self.n_poses,
                 "folds": self.folds, "noise_floor": self.noise_floor, "noise_source": self.noise_source,
+                "noise_note": self.noise_note,
                 "mean_residual_base": float(np.mean(self.base_residual)),
                 "base_significant": self.base_significant, "status": self.status, "verdict": self.verdict,
                 "evidence": [e.to_dict() for e in self.evidence],
@@ -148,7 +151,8 @@ def _specs_of(profile) -> list[dict]:
 
 def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,
              min_removed: float = 0.25, min_gain: float = 0.3, explain_fraction: float = 0.8,
-             min_floor: float = 0.003) -> Diagnosis:
+             min_floor: float = 0.003, noise_floor: float | None = None,
+             refit_base: bool | None = None) -> Diagnosis:
     """Rank candidate effects by the error they remove on held-out poses.
 
     Parameters
@@ -167,6 +171,11 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     min_floor : float
         Smallest noise floor used for significance (relative): noise-free data (a simulation,
         coherence 1) would otherwise make any linearisation or rounding error "significant".
+    noise_floor : float, optional
+        Use this noise floor instead of the estimates (``--noise-floor``).
+    refit_base : bool, optional
+        Refit the base dynamics alongside every candidate (and alone, as the first candidate);
+        default: when the data have sweeps at 3 poses or more (:func:`~ffcomp.loop.fit.base_supported`).
 
     Returns
     -------
@@ -177,14 +186,15 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     model0 = LpvModel.from_profile(profile, effects=False)
     check_measurements(model0, measurements)
     base_specs = _specs_of(profile)
+    use_base = base_supported(measurements) if refit_base is None else bool(refit_base)
+    if use_base:
+        base_specs.insert(0, base_spec(model0))
     obj = Objective(measurements)
     base_model = _model_with(model0, base_specs)
     preds = obj.predictor(base_model)
     r0 = obj.per_measurement(base_model)
-    nf = [noise_floor(m) for m in measurements]
-    nu = np.array([v for v, _ in nf])
-    src = "coherence" if all(s == "coherence" for _, s in nf) else (
-        "data" if all(s == "data" for _, s in nf) else "coherence and data")
+    nfs = noise_floors(measurements, override=noise_floor)
+    nu, src = nfs.values, nfs.source
     nu = np.where(np.isfinite(nu), nu, np.nanmedian(nu) if np.any(np.isfinite(nu)) else 0.0)
     nu = np.maximum(nu, min_floor)
     nu2 = float(np.mean(nu**2))
@@ -204,20 +214,22 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     for name in names:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect {name!r} (known: {', '.join(sorted(EFFECTS))})")
-    present = [s["name"] for s in base_specs]
+    present = [s["name"] for s in base_specs if s["name"] != BASE]
     # the profile's own effects were fitted without the missing one: refit them alongside each candidate
-    old_free = [(i, p) for i, s in enumerate(base_specs) for p in EFFECTS[s["name"]].fit_params()]
+    old_free = [(i, p) for i, s in enumerate(base_specs)
+                for p in (BASE_KEYS if s["name"] == BASE else EFFECTS[s["name"]].fit_params())]
     jobs = []
     for name in names:
         if name in present:
             continue
         cls = EFFECTS[name]
         specs = base_specs + [{"name": name, **{p: v.default for p, v in cls.params.items()}}]
-        new = [(len(base_specs), p) for p in cls.fit_params()]
+        new = [(len(base_specs), p) for p in cls.fit_params() if not (use_base and p in cls.base_fixed)]
         jobs.append((name, False, specs, old_free + new, [False] * len(old_free) + [cls.grid] * len(new)))
-    if old_free and (candidates is None or any(n in present for n in names)):
-        # first: a new effect must beat merely refitting the profile's own effects (parsimony)
-        jobs.insert(0, ("+".join(present), True, base_specs, old_free, [False] * len(old_free)))
+    if old_free and (candidates is None or use_base or any(n in present for n in names)):
+        # first: a new effect must beat merely refitting the base and the profile's own effects (parsimony)
+        own = "+".join((["base dynamics"] if use_base else []) + present)
+        jobs.insert(0, (own, True, base_specs, old_free, [False] * len(old_free)))
     ev = evidence(features(base_model, measurements, preds, r0, nu))
     cands = []
     ref2 = float(np.mean(r0**2))  # reference of the new-effect candidates: base, or the refit if better
@@ -241,10 +253,13 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
             sig = sig and inc >= min_gain * nu2 and inc >= min_removed * max(ref2 - nu2, 0.0)
         if refit:
             ref2 = min(ref2, float(np.mean(held**2)))
-        mine = list(full.effects) if refit else [full.effects[-1]]
+        mine = [e for e in full.effects if e["name"] != BASE] if refit else [full.effects[-1]]
         keys = {k for e in mine for k in getattr(EFFECTS[e["name"]], "evidence_keys", ())}
-        expl = "; ".join(EFFECTS[e["name"]](**{p: v for p, v in e.items() if p != "name"}).explain(model0)
+        fitted0 = _model_with(model0, [e for e in full.effects if e["name"] == BASE])
+        expl = "; ".join(EFFECTS[e["name"]](**{p: v for p, v in e.items() if p != "name"}).explain(fitted0)
                          for e in mine)
+        if refit and use_base:
+            expl = "; ".join(x for x in (explain_base(base_specs[0], full.effects[0]), expl) if x)
         params = {p: v for p, v in full.effects[-1].items() if p != "name"} if not refit else {
             f"{e['name']}:{p}": v for e in full.effects for p, v in e.items() if p != "name"}
         cands.append(Candidate(name, refit, params, tuple(full.estimates), held, full.residual_after,
@@ -262,7 +277,7 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     verdict = _verdict(r0, nu, status, cands, cv)
     labels = tuple(m.path or m.label for m in measurements)
     return Diagnosis(profile.name, labels, n_poses, len(fold_idx) if cv else 0, nu, src, r0, base_sig,
-                     tuple(cands), tuple(ev), verdict, status)
+                     tuple(cands), tuple(ev), verdict, status, nfs.note)
 
 
 def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:

@@ -53,6 +53,9 @@ class Effect:
     summary: ClassVar[str] = ""
     #: start a fit from a grid over the search ranges (False: from the defaults, e.g. scale factors at 1)
     grid: ClassVar[bool] = True
+    #: parameters held fixed when the base dynamics are refitted with the effect (they would be
+    #: degenerate with it, e.g. tower A's scale factors with the base m, k, c)
+    base_fixed: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def fit_params(cls) -> tuple[str, ...]:

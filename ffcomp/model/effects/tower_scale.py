@@ -63,6 +63,7 @@ class TowerScale(Effect):
     name = "tower_scale"
     summary = "per-tower carriage stiffness / mass / damping factors (e.g. unequal belt tension)"
     params = _params()
+    base_fixed = ("k_scale_A", "m_scale_A", "c_scale_A")  # with the base refitted: towers B, C relative to A
     fit = tuple(_params())  # all nine: each is identifiable from task-space sweeps at several poses
     grid = False  # start from 1 (no difference between towers)
     evidence_keys = ("peak_shift", "tower")
