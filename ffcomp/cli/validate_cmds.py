@@ -28,6 +28,20 @@ BaseOpt = Annotated[Optional[bool], typer.Option(
     "--base/--no-base", help="Refit the base dynamics (m, c, b, k, b_nt, drive) with the effects (default: when "
     "the data have sweeps at 3 poses or more).", show_default=False)]
 
+PluginOpt = Annotated[Optional[List[str]], typer.Option(
+    "--plugin", help="Load effects from a Python file or an installed module (repeatable); see "
+    "docs/effects_example_motor_mount.py.")]
+
+
+def _load_plugins(refs) -> None:
+    from ..model.effects import load_plugin
+
+    for r in refs or []:
+        try:
+            load_plugin(r)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--plugin") from None
+
 
 def _noise_notes(note: str, below: str = "") -> None:
     for text in (note, below):
@@ -84,9 +98,11 @@ def validate_cmd(
     top: Annotated[int, typer.Option(help="Rows in the ranked-failures table.")] = 10,
     bode: Annotated[int, typer.Option(help="Bode overlays in the HTML report (the worst fits).")] = 12,
     noise_floor: NoiseOpt = None,
+    plugin: PluginOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Compare the profile's model with measured FRFs: R^2 (Eq. 36), complex residual, where it fails."""
+    _load_plugins(plugin)
     prof = load_profile_opt(profile)
     before = load_profile_opt(compare) if compare else None
     run = vf.run_validate(data, prof, before, noise_floor=noise_floor)
@@ -193,9 +209,11 @@ def diagnose_cmd(
     folds: Annotated[int, typer.Option(help="Cross-validation folds (by pose).")] = 4,
     noise_floor: NoiseOpt = None,
     base: BaseOpt = None,
+    plugin: PluginOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Which physical effect is missing?  Fits each candidate, scores it on held-out poses, explains."""
+    _load_plugins(plugin)
     prof = load_profile_opt(profile)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     try:
@@ -270,12 +288,14 @@ def fit_cmd(
     refit: Annotated[bool, typer.Option(help="Refit the profile's existing effects too.")] = True,
     base: BaseOpt = None,
     noise_floor: NoiseOpt = None,
+    plugin: PluginOpt = None,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
 ) -> None:
-    """Add effects to the profile and fit their parameters to the measurements."""
+    """Add effects to the profile and fit their parameters to the measurements (and the base dynamics)."""
     from ..profile import save_profile
 
+    _load_plugins(plugin)
     prof = load_profile_opt(profile)
     frees = []
     for s in free or []:
@@ -331,10 +351,16 @@ def virtual_cmd(
     heights: Annotated[str, typer.Option(help="Nozzle heights of the task sweeps, mm (comma-separated).")] = "30,130",
     offset: Annotated[Optional[float], typer.Option(help="Lateral offset of the off-centre poses, mm.")] = None,
     truth: Annotated[Optional[Path], typer.Option(help="Also write the hidden profile (a spoiler) here.")] = None,
+    averages: Annotated[Optional[int], typer.Option(help="Coherence as from this many H1 averages (default: 1).")]
+    = None,
+    no_averages_key: Annotated[bool, typer.Option("--no-averages-key", help="Do not write the 'averages' header "
+                                                  "key (a coherence of unknown averages count).")] = False,
+    plugin: PluginOpt = None,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Virtual measurement set from the LPV model with hidden effects (identification + validation sweeps)."""
+    _load_plugins(plugin)
     if not (0 < fmin < fmax) or n < 8:
         raise typer.BadParameter("need 0 < fmin < fmax and n >= 8", param_hint="--fmin/--fmax/--n")
     if not 0 <= noise < 1:
@@ -346,7 +372,8 @@ def virtual_cmd(
         raise typer.BadParameter(str(e), param_hint="--effect/--heights") from None
     prof = load_profile_opt(profile)
     paths = vf.run_virtual(prof, effs, output, noise=noise, seed=seed, freq_hz=np.geomspace(fmin, fmax, n),
-                           heights_mm=hs, offset_mm=offset, truth=truth)
+                           heights_mm=hs, offset_mm=offset, truth=truth, averages=averages,
+                           averages_key=not no_averages_key)
     if json:
         print_json({"files": [str(p) for p in paths], "noise": noise, "seed": seed,
                     "truth": str(truth) if truth else None})

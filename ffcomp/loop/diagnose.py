@@ -38,7 +38,7 @@ from ..model.effects import EFFECTS, load_library
 from ..model.lpv import LpvModel
 from .base_fit import BASE, BASE_KEYS, base_spec, explain_base
 from .evidence import evidence, features
-from .fit import Objective, _model_with, base_supported, fit_free
+from .fit import Objective, _model_with, base_supported, effect_specs, fit_free
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
 
@@ -142,11 +142,7 @@ def pose_folds(measurements, k: int) -> list[np.ndarray]:
 
 
 def _specs_of(profile) -> list[dict]:
-    out = []
-    for e in profile.effects:
-        cls = EFFECTS[e["name"]]
-        out.append({"name": cls.name, **{k: float(e.get(k, p.default)) for k, p in cls.params.items()}})
-    return out
+    return effect_specs(profile)
 
 
 def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,

@@ -325,7 +325,12 @@ def base_supported(measurements, *, min_poses: int = 3) -> bool:
 
 def effect_specs(profile) -> list[dict]:
     """The profile's ``[[effects]]`` with every parameter filled in (defaults where absent)."""
-    load_library()
+    from pathlib import Path
+
+    from ..model.effects import build_effects
+
+    src = profile.source
+    build_effects(profile.effects, Path(src).parent if src and not str(src).startswith("<") else None)  # plug-ins
     specs = []
     for e in profile.effects:
         e = dict(e)
@@ -407,7 +412,8 @@ def fit_effects(profile, measurements, add=(), *, refit: bool = True, set_values
 
 def fitted_profile(profile, result: FitResult):
     """``profile`` with the fit's effects and, if refitted, base dynamics."""
+    from ..model.effects import with_plugin_refs
     from .base_fit import apply_base_to_profile
 
-    out = profile.with_(effects=tuple(result.effects))
+    out = profile.with_(effects=with_plugin_refs(result.effects))
     return apply_base_to_profile(out, result.base) if result.base is not None else out

@@ -117,7 +117,8 @@ def parse_effect_args(args) -> list[dict]:
 
 
 def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0, freq_hz=None,
-                heights_mm=(30.0, 130.0), offset_mm=None, truth=None) -> list[Path]:
+                heights_mm=(30.0, 130.0), offset_mm=None, truth=None, averages: int | None = None,
+                averages_key: bool = True) -> list[Path]:
     """Write virtual measurements of ``profile`` with hidden ``effects`` into ``out_dir``.
 
     ``truth``: optional path for the profile with the hidden effects (a TOML spoiler file).
@@ -128,7 +129,8 @@ def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0
 
     build_effects(effects)  # validate names and values before writing anything
     plan = measurement_plan(profile, offset_mm=offset_mm, heights_mm=heights_mm)
-    ms = virtual_measurements(profile, effects, freq_hz=freq_hz, noise=noise, seed=seed, plan=plan)
+    ms = virtual_measurements(profile, effects, freq_hz=freq_hz, noise=noise, seed=seed, plan=plan,
+                              averages=averages, averages_key=averages_key)
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -137,7 +139,9 @@ def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0
         save_frf(m, p)
         paths.append(p)
     if truth:
-        hidden = profile.with_(effects=tuple(profile.effects) + tuple(effects),
+        from ..model.effects import with_plugin_refs
+
+        hidden = profile.with_(effects=with_plugin_refs(tuple(profile.effects) + tuple(effects)),
                                name=f"{profile.name} + hidden {', '.join(e['name'] for e in effects) or 'nothing'}")
         save_profile(hidden, truth)
     return paths
