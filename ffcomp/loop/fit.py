@@ -189,14 +189,15 @@ def _grid(free, specs, fresh, n_max: int = 64, seed: int = 0) -> np.ndarray:
             axes.append(sorted({float(np.clip(cur, 0, 1)), *pts}))
         else:
             axes.append([float(np.clip(cur, 0, 1))])
-    pts = np.array(list(itertools.product(*axes)))
-    if len(pts) > n_max:
-        rng = np.random.default_rng(seed)
-        keep = rng.choice(len(pts), n_max - 1, replace=False)
-        cur = np.array([a[0] if len(a) == 1 else float(np.clip((float(specs[k][p]) - lo) / (hi - lo), 0, 1))
-                        for a, (k, p, lo, hi) in zip(axes, free)])
-        pts = np.vstack([cur, pts[keep]])
-    return pts
+    size = int(np.prod([len(a) for a in axes], dtype=float))
+    if size <= n_max:
+        return np.array(list(itertools.product(*axes)))
+    # too many combinations to list: the current point plus random grid points
+    rng = np.random.default_rng(seed)
+    cur = np.array([a[0] if len(a) == 1 else float(np.clip((float(specs[k][p]) - lo) / (hi - lo), 0, 1))
+                    for a, (k, p, lo, hi) in zip(axes, free)])
+    picks = np.array([[a[rng.integers(len(a))] for a in axes] for _ in range(n_max - 1)])
+    return np.vstack([cur, picks])
 
 
 def fit_free(model0: LpvModel, specs, free, measurements, *, fresh=None, x0=None, objective=None,

@@ -300,6 +300,8 @@ def identify(carriage: FrfMeasurement, assembled: FrfMeasurement, m_n: float, m_
         ])
 
     res = _best_lsq_bounded(fun, x0, 4, (0.0, 0.6, 1.5), (lo, hi))
+    snap = np.isfinite(lo) & (np.abs(res.x - lo) <= 1e-7 * np.maximum(1.0, np.abs(lo)))
+    res.x = np.where(snap, lo, res.x)  # a value on its bound is the bound (c = 0, not 6e-24)
     wc, zc, wa, za, tau, d0, d1, d2 = (float(v) for v in _unpack(res.x))
     m_nt = m_n + 1.5 * m_f
     m = m_nt * wa**2 / (3.0 * (wc**2 - wa**2))  # Eq. 33, sign fixed
