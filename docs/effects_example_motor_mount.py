@@ -6,8 +6,8 @@ the carriage sweep can describe it here and fit it, without editing ffcomp::
     ffcomp fit DATA --profile printer.toml --plugin docs/effects_example_motor_mount.py \\
         --add motor_mount -o printer_mm.toml
 
-The fitted profile keeps ``plugin = "docs/effects_example_motor_mount.py"`` in its ``[[effects]]``
-entry, so every later command (validate, compensate, simulate) loads it again.  A plug-in may also
+The fitted profile keeps ``plugin = "/abs/path/docs/effects_example_motor_mount.py"`` in its
+``[[effects]]`` entry, so every later command (validate, compensate, simulate) loads it again.  A plug-in may also
 be an installed module: ``plugin = "mypackage.effects"``.
 
 Physics
@@ -49,8 +49,8 @@ class MotorMount(Effect):
     name = "motor_mount"
     summary = "compliant motor mount: an extra lightly damped mode in every drive (plug-in example)"
     params = {
-        "f_hz": Param(250.0, "Hz", 1.0, 5000.0, "mount resonance", search=(120.0, 400.0)),
-        "zeta": Param(0.03, "", 0.001, 1.0, "damping ratio of the mount mode", search=(0.005, 0.2)),
+        "f_hz": Param(200.0, "Hz", 1.0, 5000.0, "mount resonance", search=(120.0, 400.0)),
+        "zeta": Param(0.05, "", 0.001, 1.0, "damping ratio of the mount mode", search=(0.005, 0.2)),
         "mu": Param(0.3, "", 0.0, 10.0, "mount compliance ratio (high-frequency gain 1 + mu)", search=(0.0, 1.5)),
     }
 

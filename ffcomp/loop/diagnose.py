@@ -37,7 +37,7 @@ from ..measure.predict import BatchPredictor, check_measurements
 from ..model.effects import EFFECTS, load_library
 from ..model.lpv import LpvModel
 from .base_fit import BASE, BASE_KEYS, base_spec, explain_base
-from .evidence import evidence, features
+from .evidence import evidence, features, fixed_band
 from .fit import Objective, _model_with, base_supported, effect_specs, fit_free
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
@@ -227,6 +227,9 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
         own = "+".join((["base dynamics"] if use_base else []) + present)
         jobs.insert(0, (own, True, base_specs, old_free, [False] * len(old_free)))
     ev = evidence(features(base_model, measurements, preds, r0, nu))
+    fb = fixed_band(measurements, preds, nu) if base_sig else None
+    if fb is not None:
+        ev = [fb] + list(ev)
     cands = []
     ref2 = float(np.mean(r0**2))  # reference of the new-effect candidates: base, or the refit if better
     for name, refit, specs, free, fresh in jobs:
@@ -270,7 +273,9 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     sig = [c for c in cands if c.significant]
     status = ("ok" if not base_sig else "unexplained" if not sig else
               "explained" if sig[0].removed >= explain_fraction else "partial")
-    verdict = _verdict(r0, nu, status, cands, cv)
+    if fb is not None and status == "partial" and np.mean(sig[0].heldout**2) > 4.0 * nu2:
+        status = "unexplained"  # a fixed-frequency misfit the best candidate leaves: outside the library
+    verdict = _verdict(r0, nu, status, cands, cv, fb)
     labels = tuple(m.path or m.label for m in measurements)
     return Diagnosis(profile.name, labels, n_poses, len(fold_idx) if cv else 0, nu, src, r0, base_sig,
                      tuple(cands), tuple(ev), verdict, status, nfs.note)
@@ -320,7 +325,7 @@ def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:
     return f"fitted pose by pose ({len(groups)} poses; median, quartiles): " + "; ".join(parts)
 
 
-def _verdict(r0, nu, status, cands, cv) -> str:
+def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
     m0, mn = float(np.mean(r0)), float(np.mean(nu))
     how = "on held-out poses" if cv else "in sample (too few poses to hold any out)"
     if status == "ok":
@@ -330,8 +335,9 @@ def _verdict(r0, nu, status, cands, cv) -> str:
         best = cands[0] if cands else None
         tail = (f" The best candidate, {best.label}, removes only {max(best.removed, 0):.0%} of the error above the "
                 f"noise {how}.") if best else ""
+        band = f" The evidence points at it: {fb.text}." if fb is not None else ""
         return (f"The model misses something (mean residual {m0:.4f}, noise {mn:.4f}) that no candidate effect "
-                f"explains.{tail} Look at where it fails (ffcomp validate) and the evidence below.")
+                f"explains.{band}{tail} Look at where it fails (ffcomp validate) and the evidence below.")
     sig = [c for c in cands if c.significant]
     c = sig[0]
     left = float(np.mean(c.heldout))

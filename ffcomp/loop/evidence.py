@@ -11,7 +11,8 @@ returned as an :class:`Evidence` item with a key that effects list in ``evidence
 ``lateral_gain``  low-frequency gain of lateral responses off one while vertical stays one;
 ``peak_shift``  the measured resonance is shifted by the same fraction at every pose;
 ``height_shift``  the resonance shift changes sign/size with carriage height;
-``identification``  the identification sweeps at the centre deviate too.
+``identification``  the identification sweeps at the centre deviate too;
+``fixed_band``  one frequency band fails at every pose and in the carriage sweep (:func:`fixed_band`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from scipy.stats import spearmanr
 
 from ..kinematics import inverse
 
-__all__ = ["Evidence", "Features", "features", "evidence"]
+__all__ = ["Evidence", "Features", "features", "evidence", "fixed_band"]
 
 
 @dataclass(frozen=True)
@@ -207,3 +208,60 @@ def evidence(ft: Features) -> list[Evidence]:
                 "the model is right where it was identified and wrong elsewhere")))
     out.sort(key=lambda e: -e.strength)
     return out
+
+
+def fixed_band(measurements, predictions, noise, *, per_octave: float = 3.0, min_share: float = 0.8,
+               min_excess: float = 5.0, min_contrast: float = 2.0) -> Evidence | None:
+    """A misfit concentrated in one frequency band, the same at every pose and in the carriage sweep.
+
+    Each sweep's relative complex residual is taken in 1/``per_octave``-octave bands on a common
+    grid.  The signature is found when the worst band of at least ``min_share`` of the sweeps is
+    one band (or its neighbour), every carriage sweep among them, its residual is ``min_excess``
+    times the noise and ``min_contrast`` times the residual outside it (medians).  No effect of
+    the library does that: they all move with pose or act on the effector.  Returns None if absent.
+    """
+    from .metrics import complex_residual
+
+    ms = list(measurements)
+    if len(ms) < 3:
+        return None
+    f_lo = min(float(m.freq_hz[0]) for m in ms)
+    f_hi = max(float(m.freq_hz[-1]) for m in ms)
+    k0, k1 = int(np.floor(np.log2(f_lo) * per_octave)), int(np.ceil(np.log2(f_hi) * per_octave))
+    edges = 2.0 ** (np.arange(k0, k1 + 1) / per_octave)
+    worst, ratio, contrast = [], [], []
+    for m, Hp, nu in zip(ms, predictions, noise):
+        best = (-1, -np.inf, np.nan)
+        for j in range(len(edges) - 1):
+            sel = (m.freq_hz >= edges[j]) & (m.freq_hz < edges[j + 1])
+            if sel.sum() < 3:
+                continue
+            r = complex_residual(m.H[sel], Hp[sel], m.weights[sel])
+            if r > best[1]:
+                rest = complex_residual(m.H[~sel], Hp[~sel], m.weights[~sel]) if (~sel).sum() >= 3 else np.nan
+                best = (j, r, rest)
+        worst.append(best[0])
+        ratio.append(best[1] / max(float(nu), 1e-12))
+        contrast.append(best[1] / best[2] if np.isfinite(best[2]) and best[2] > 0 else np.inf)
+    worst = np.array(worst)
+    vals, counts = np.unique(worst[worst >= 0], return_counts=True)
+    if not len(vals):
+        return None
+    j = int(vals[np.argmax(counts)])
+    hit = np.abs(worst - j) <= 1
+    share = float(hit.mean())
+    carriage = np.array([m.kind == "carriage" for m in ms])
+    exc = float(np.median(np.array(ratio)[hit]))
+    con = float(np.median(np.array(contrast)[hit]))
+    if share < min_share or exc < min_excess or con < min_contrast or (carriage.any() and not hit[carriage].all()):
+        return None
+    poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in ms}
+    hit_poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m, h in zip(ms, hit) if h}
+    lo, hi = float(edges[j]), float(edges[j + 1])
+    car = (" and in the carriage sweep (effector detached) too" if carriage.any() else "")
+    text = (f"a misfit at a fixed frequency, {lo:.0f}-{hi:.0f} Hz, is the worst band of {int(hit.sum())} of {len(ms)} "
+            f"sweeps, at {len(hit_poses)} of {len(poses)} poses{car} ({exc:.0f}x the noise there, {con:.1f}x the "
+            "residual elsewhere): a resonance that does not move with the pose, which no effect of the library "
+            "produces (a compliant motor mount, a frame or pulley mode); describe it as an effect plug-in "
+            "(docs/effects_example_motor_mount.py) and fit it with `ffcomp fit --plugin FILE --add NAME`")
+    return Evidence("fixed_band", min(1.0, share), text)

@@ -190,7 +190,7 @@ def load_plugin(ref: str, base_dir=None) -> list[str]:
         raise ValueError(f"effect plug-in {ref!r} registered no effect (decorate an Effect subclass with "
                          "@ffcomp.model.effects.register)")
     for n in new:
-        EFFECTS[n].plugin = ref
+        EFFECTS[n].plugin = key  # a file by its absolute path: the profile that names it may live anywhere
     _PLUGINS[ref] = _PLUGINS[key] = new
     return new
 
