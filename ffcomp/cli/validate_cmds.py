@@ -173,6 +173,8 @@ def _fit_command_for(data, profile):
     out = (Path(profile).with_name(Path(profile).stem + "_fitted.toml") if profile else Path("fitted.toml"))
 
     def real(c) -> str:
+        if getattr(c, "kind", "effect") == "geometry":
+            return f"ffcomp profile set {profile or 'printer.toml'} {c.set_value}"
         add = "" if c.refit else f" --add {c.effect}"
         prof = f" --profile {profile}" if profile else ""
         return f"ffcomp fit {data}{prof}{add} -o {out}"

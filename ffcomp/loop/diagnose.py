@@ -39,6 +39,7 @@ from ..model.lpv import LpvModel
 from .base_fit import BASE, BASE_KEYS, base_spec, explain_base
 from .evidence import evidence, features, fixed_band
 from .fit import Objective, _model_with, base_supported, effect_specs, fit_free
+from .geometry_fit import GEOM, geometry_spec, profile_geometry_change
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
 
@@ -63,14 +64,21 @@ class Candidate:
     explanation: str
     evidence: tuple
     effects: tuple = ()
+    #: ``"effect"``, or ``"geometry"`` (a profile value is wrong: ``set_value`` says which)
+    kind: str = "effect"
+    set_value: str = ""
 
     @property
     def label(self) -> str:
+        if self.kind == "geometry":
+            return f"geometry: {self.effect.replace('_', ' ')}"
         return f"refit {self.effect}" if self.refit else self.effect
 
     @property
     def command(self) -> str:
-        """The ``ffcomp fit`` call that applies this candidate."""
+        """The command that applies this candidate (``ffcomp fit``, or ``ffcomp profile set`` for geometry)."""
+        if self.kind == "geometry":
+            return f"ffcomp profile set P.toml {self.set_value}"
         add = "" if self.refit else f" --add {self.effect}"
         return f"ffcomp fit DATA --profile P.toml{add} -o P2.toml"
 
@@ -84,7 +92,8 @@ class Candidate:
                 "mean_residual_heldout": self.mean_heldout, "mean_residual_insample": float(np.mean(self.insample)),
                 "removed_fraction": self.removed, "gain_over_noise": self.gain, "significant": self.significant,
                 "explanation": self.explanation, "evidence": list(self.evidence),
-                "effects": [dict(e) for e in self.effects], "command": self.command,
+                "effects": [dict(e) for e in self.effects], "command": self.command, "kind": self.kind,
+                "set_value": self.set_value,
                 "residual_heldout": self.heldout.tolist()}
 
 
@@ -148,7 +157,7 @@ def _specs_of(profile) -> list[dict]:
 def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,
              min_removed: float = 0.25, min_gain: float = 0.3, explain_fraction: float = 0.8,
              min_floor: float = 0.003, noise_floor: float | None = None,
-             refit_base: bool | None = None) -> Diagnosis:
+             refit_base: bool | None = None, geometry: bool = True) -> Diagnosis:
     """Rank candidate effects by the error they remove on held-out poses.
 
     Parameters
@@ -169,6 +178,9 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
         coherence 1) would otherwise make any linearisation or rounding error "significant".
     noise_floor : float, optional
         Use this noise floor instead of the estimates (``--noise-floor``).
+    geometry : bool
+        Also try the geometry as the cause (delta radius, arm length, tower-angle frame; only with
+        the default candidates), :mod:`ffcomp.loop.geometry_fit`.
     refit_base : bool, optional
         Refit the base dynamics alongside every candidate (and alone, as the first candidate);
         default: when the data have sweeps at 3 poses or more (:func:`~ffcomp.loop.fit.base_supported`).
@@ -222,6 +234,12 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
         specs = base_specs + [{"name": name, **{p: v.default for p, v in cls.params.items()}}]
         new = [(len(base_specs), p) for p in cls.fit_params() if not (use_base and p in cls.base_fixed)]
         jobs.append((name, False, specs, old_free + new, [False] * len(old_free) + [cls.grid] * len(new)))
+    if geometry and candidates is None:
+        g0 = geometry_spec(model0)
+        for key in ("delta_radius_mm", "arm_length_mm"):
+            specs = base_specs + [dict(g0)]
+            jobs.append((key[:-3], False, specs, old_free + [(len(base_specs), key)],
+                         [False] * (len(old_free) + 1)))
     if old_free and (candidates is None or use_base or any(n in present for n in names)):
         # first: a new effect must beat merely refitting the base and the profile's own effects (parsimony)
         own = "+".join((["base dynamics"] if use_base else []) + present)
@@ -252,6 +270,13 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
             sig = sig and inc >= min_gain * nu2 and inc >= min_removed * max(ref2 - nu2, 0.0)
         if refit:
             ref2 = min(ref2, float(np.mean(held**2)))
+        if full.effects[-1]["name"] == GEOM and not refit:
+            key = name + "_mm"
+            setv, words = profile_geometry_change(profile, key, full.effects[-1][key])
+            cands.append(Candidate(name, False, {key: full.effects[-1][key]}, tuple(full.estimates), held,
+                                   full.residual_after, float(removed), gain / nu2 if nu2 else float("inf"), sig,
+                                   words, (), tuple(full.effects), "geometry", setv))
+            continue
         mine = [e for e in full.effects if e["name"] != BASE] if refit else [full.effects[-1]]
         keys = {k for e in mine for k in getattr(EFFECTS[e["name"]], "evidence_keys", ())}
         fitted0 = _model_with(model0, [e for e in full.effects if e["name"] == BASE])
@@ -264,9 +289,13 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
         cands.append(Candidate(name, refit, params, tuple(full.estimates), held, full.residual_after,
                                float(removed), gain / nu2 if nu2 else float("inf"), sig, expl,
                                tuple(e.text for e in ev if e.key in keys and e.strength >= 0.5), tuple(full.effects)))
+    if geometry and candidates is None:
+        rot = _frame_candidate(profile, model0, base_specs, obj, r0, e0, nu2, base_sig, min_removed, min_gain)
+        if rot is not None:
+            cands.append(rot)
     cands.sort(key=lambda c: (not c.significant, c.mean_heldout))
     for j, c in enumerate(cands[:2]):
-        if c.significant and not c.refit:
+        if c.significant and not c.refit and c.kind == "effect":
             txt = _pose_consistency(model0, [dict(e) for e in c.effects], len(c.effects) - 1, measurements, c)
             if txt:
                 cands[j] = replace(c, evidence=(txt,) + c.evidence)
@@ -279,6 +308,38 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     labels = tuple(m.path or m.label for m in measurements)
     return Diagnosis(profile.name, labels, n_poses, len(fold_idx) if cv else 0, nu, src, r0, base_sig,
                      tuple(cands), tuple(ev), verdict, status, nfs.note)
+
+
+def _frame_candidate(profile, model0, base_specs, obj, r0, e0, nu2, base_sig, min_removed, min_gain):
+    """The tower angles rotated by multiples of 30 deg (e.g. the firmware frame on paper-frame data),
+    scored without fitting (nothing is fitted, so in-sample is held-out)."""
+    g0 = geometry_spec(model0)
+    tried = []
+    for rot in range(30, 360, 30):
+        spec = dict(g0, rotation_deg=float(rot if rot <= 180 else rot - 360))
+        try:
+            r = obj.per_measurement(_model_with(model0, base_specs + [spec]))
+        except (ValueError, np.linalg.LinAlgError):
+            continue  # a pose out of reach in the rotated frame
+        tried.append((spec, r))
+    if not tried:
+        return None
+    # rotations 120 deg apart only relabel the towers: among the (near) ties prefer a named frame
+    low = min(float(np.mean(r**2)) for _, r in tried)
+    ang0 = np.asarray(profile.geometry.tower_angles_deg, float)
+
+    def pref(item):
+        new = (ang0 + item[0]["rotation_deg"]) % 360.0
+        named = 0 if np.allclose(new, [0, 120, 240]) else 1 if np.allclose(new, [210, 330, 90]) else 2
+        return (named, abs(item[0]["rotation_deg"]))
+
+    spec, r = min((t for t in tried if np.mean(t[1] ** 2) <= 1.02 * low), key=pref)
+    gain = float(np.mean(r0**2) - np.mean(r**2))
+    removed = min(gain / e0, 1.0) if e0 > 0 else 0.0
+    sig = bool(base_sig and removed >= min_removed and gain >= min_gain * nu2)
+    setv, words = profile_geometry_change(profile, "rotation_deg", spec["rotation_deg"])
+    return Candidate("tower_frame", False, {"rotation_deg": spec["rotation_deg"]}, (), r, r, float(removed),
+                     gain / nu2 if nu2 else float("inf"), sig, words, (), tuple(base_specs) + (spec,), "geometry", setv)
 
 
 def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:
@@ -352,6 +413,10 @@ def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
                 f"again (a second effect?), or something outside the library is missing.{alt}{fit}")
     more = (" Some error remains above the noise: after fitting it, diagnose again."
             if np.mean(c.heldout**2) > 1.5**2 * np.mean(nu**2) else "")
+    if c.kind == "geometry":
+        return (f"Geometry, not a physical effect: {c.explanation}. Correcting it removes {c.removed:.0%} of the "
+                f"error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise {mn:.4f}). Fix the "
+                f"profile: {c.command}, then diagnose again.{more}")
     if c.refit:
         return (f"Nothing new is missing: the profile's own effects ({c.effect}) have the wrong parameters. "
                 f"Refitting them removes {c.removed:.0%} of the error above the noise {how} (mean residual "

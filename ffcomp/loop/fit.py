@@ -28,6 +28,7 @@ from ..measure.predict import BatchPredictor, check_measurements
 from ..model.effects import EFFECTS, load_library
 from ..model.lpv import LpvModel
 from .base_fit import BASE, BASE_KEYS, apply_base, base_spec, base_table
+from .geometry_fit import GEOM, apply_geometry, geometry_table
 
 __all__ = ["ParamEstimate", "FitResult", "Objective", "fit_effects", "fit_free", "residuals_of",
            "parse_assignment", "base_supported", "effect_specs", "fitted_profile"]
@@ -168,6 +169,9 @@ def _model_with(model0: LpvModel, specs) -> LpvModel:
         if name == BASE:
             model0 = apply_base(model0, s)
             continue
+        if name == GEOM:
+            model0 = apply_geometry(model0, s)
+            continue
         effs.append(EFFECTS[name](**s))
     return model0.with_effects(effs)
 
@@ -176,6 +180,8 @@ def _param(spec: dict, p: str, tables: dict | None = None):
     """The :class:`Param` of parameter ``p`` of the entry ``spec`` (an effect or the base)."""
     if spec["name"] == BASE:
         return (tables or {}).get(BASE, base_table(spec))[p]
+    if spec["name"] == GEOM:
+        return (tables or {}).get(GEOM, geometry_table(spec))[p]
     return EFFECTS[spec["name"]].params[p]
 
 
@@ -231,6 +237,8 @@ def fit_free(model0: LpvModel, specs, free, measurements, *, fresh=None, x0=None
     for s in specs:
         if s["name"] == BASE and BASE not in tables:
             tables[BASE] = base_table(s)
+        if s["name"] == GEOM and GEOM not in tables:
+            tables[GEOM] = geometry_table(s)
     model0 = model0.with_effects(())
     obj = objective or Objective(measurements)
     bounds = []
