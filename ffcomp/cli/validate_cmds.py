@@ -33,14 +33,17 @@ PluginOpt = Annotated[Optional[List[str]], typer.Option(
     "docs/effects_example_motor_mount.py.")]
 
 
-def _load_plugins(refs) -> None:
+def _load_plugins(refs) -> list[str]:
+    """Load the plug-ins; the names of the effects they define."""
     from ..model.effects import load_plugin
 
+    names: list[str] = []
     for r in refs or []:
         try:
-            load_plugin(r)
+            names += load_plugin(r)
         except ValueError as e:
             raise typer.BadParameter(str(e), param_hint="--plugin") from None
+    return names
 
 
 def _noise_notes(note: str, below: str = "") -> None:
@@ -215,12 +218,12 @@ def diagnose_cmd(
     json: JsonOpt = False,
 ) -> None:
     """Which physical effect is missing?  Fits each candidate, scores it on held-out poses, explains."""
-    _load_plugins(plugin)
+    extra = _load_plugins(plugin)
     prof = load_profile_opt(profile)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     try:
         d, skipped = vf.run_diagnose(data, prof, candidates=names, folds=folds, noise_floor=noise_floor,
-                                     refit_base=base)
+                                     refit_base=base, extra=extra)
     except ValueError as e:
         if type(e) is not ValueError:
             raise

@@ -157,7 +157,7 @@ def _specs_of(profile) -> list[dict]:
 def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,
              min_removed: float = 0.25, min_gain: float = 0.3, explain_fraction: float = 0.8,
              min_floor: float = 0.003, noise_floor: float | None = None,
-             refit_base: bool | None = None, geometry: bool = True) -> Diagnosis:
+             refit_base: bool | None = None, geometry: bool = True, extra=()) -> Diagnosis:
     """Rank candidate effects by the error they remove on held-out poses.
 
     Parameters
@@ -178,6 +178,8 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
         coherence 1) would otherwise make any linearisation or rounding error "significant".
     noise_floor : float, optional
         Use this noise floor instead of the estimates (``--noise-floor``).
+    extra : sequence of str
+        Plug-in effects to try as well (loaded with :func:`~ffcomp.model.effects.load_plugin`).
     geometry : bool
         Also try the geometry as the cause (delta radius, arm length, tower-angle frame; only with
         the default candidates), :mod:`ffcomp.loop.geometry_fit`.
@@ -201,7 +203,7 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     base_model = _model_with(model0, base_specs)
     preds = obj.predictor(base_model)
     r0 = obj.per_measurement(base_model)
-    nfs = noise_floors(measurements, override=noise_floor)
+    nfs = noise_floors(measurements, override=noise_floor, predictions=preds)
     nu, src = nfs.values, nfs.source
     nu = np.where(np.isfinite(nu), nu, np.nanmedian(nu) if np.any(np.isfinite(nu)) else 0.0)
     nu = np.maximum(nu, min_floor)
@@ -218,7 +220,11 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
             tr = [measurements[i] for i in train]
             te = [measurements[i] for i in test]
             fold_objs.append((test, Objective(tr, BatchPredictor(tr)), Objective(te, BatchPredictor(te))))
-    names = list(candidates) if candidates else sorted(EFFECTS)
+    # default: the library, the plug-ins the profile names and those asked for (``extra``); a plug-in
+    # loaded for another purpose is not a candidate unless named
+    own = {e["name"] for e in profile.effects}
+    names = list(candidates) if candidates else sorted(
+        n for n, c in EFFECTS.items() if c.plugin is None or n in own or n in set(extra))
     for name in names:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect {name!r} (known: {', '.join(sorted(EFFECTS))})")
@@ -414,7 +420,10 @@ def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
     more = (" Some error remains above the noise: after fitting it, diagnose again."
             if np.mean(c.heldout**2) > 1.5**2 * np.mean(nu**2) else "")
     if c.kind == "geometry":
-        return (f"Geometry, not a physical effect: {c.explanation}. Correcting it removes {c.removed:.0%} of the "
+        twins = [o for o in sig[1:] if o.kind == "geometry" and np.mean(o.heldout**2) <= 1.1 * np.mean(c.heldout**2)]
+        also = "".join(f" Nearly as good: {o.explanation} (at these poses the two are hard to tell apart; sweeps "
+                       "at more heights and radii separate them)." for o in twins)
+        return (f"Geometry, not a physical effect: {c.explanation}.{also} Correcting it removes {c.removed:.0%} of the "
                 f"error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise {mn:.4f}). Fix the "
                 f"profile: {c.command}, then diagnose again.{more}")
     if c.refit:

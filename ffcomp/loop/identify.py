@@ -375,11 +375,13 @@ def worst_band(meas: FrfMeasurement, Hfit, per_octave: float = 3.0) -> tuple[flo
 
 
 def quality_warnings(ident: "Identification", carriage: FrfMeasurement, assembled: FrfMeasurement,
-                     noise_floor: float | None = None, factor: float = 1.5) -> list[str]:
+                     noise_floor: float | None = None, factor: float = 1.3) -> list[str]:
     """Warnings on an identification: fit residuals above the noise (where, and what to do), bounds hit."""
     from ..measure.noise import noise_floors
 
-    nfs = noise_floors([carriage, assembled], override=noise_floor)
+    nfs = noise_floors([carriage, assembled], override=noise_floor,
+                       predictions=[ident.carriage_fit.response(carriage.freq_hz),
+                                    ident.assembled_fit.response(assembled.freq_hz)])
     out = []
     bad = []
     for (name, meas, fit), nu in zip((("carriage", carriage, ident.carriage_fit),

@@ -289,7 +289,7 @@ def validate(profile_or_model, measurements, *, name: str | None = None,
     preds = BatchPredictor(measurements)(model)
     res = _resonances(model, measurements)
     scores = []
-    nfs = noise_floors(measurements, override=noise_floor)
+    nfs = noise_floors(measurements, override=noise_floor, predictions=preds)
     for m, Hp, (fd, fm), nf in zip(measurements, preds, res, nfs.values):
         names, edges = band_edges(fd, fm)
         src = nfs.source

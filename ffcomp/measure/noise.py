@@ -115,7 +115,8 @@ class NoiseFloors:
                 "from_data": clean(self.from_data), "from_coherence": clean(self.from_coherence)}
 
 
-def noise_floors(measurements, *, override: float | None = None, ratio_tol: float = 1.5) -> NoiseFloors:
+def noise_floors(measurements, *, override: float | None = None, ratio_tol: float = 1.5,
+                 predictions=None) -> NoiseFloors:
     """Noise floors of a data set: coherence and the data's scatter, cross-checked (module docstring).
 
     Parameters
@@ -125,10 +126,22 @@ def noise_floors(measurements, *, override: float | None = None, ratio_tol: floa
         Use this floor everywhere (``--noise-floor``).
     ratio_tol : float
         Largest ratio between the two estimates (set medians) still called agreement.
+    predictions : sequence of ndarray, optional
+        A model's FRFs for the measurements.  The scatter is then also taken on ``H / H_pred``,
+        which is smooth where ``H`` itself is not (the resonances divide out), so a coarse
+        frequency grid no longer inflates the estimate with curvature; the smaller estimate is
+        used (curvature only ever adds).
     """
     ms = list(measurements)
     n = len(ms)
     dat = np.array([noise_from_data(m.freq_hz, m.H) for m in ms]) if n else np.zeros(0)
+    if predictions is not None:
+        for i, (m, Hp) in enumerate(zip(ms, predictions)):
+            Hp = np.asarray(Hp, complex)
+            if np.all(np.abs(Hp) > 0) and np.all(np.isfinite(Hp)):
+                v = noise_from_data(m.freq_hz, m.H / Hp)
+                if np.isfinite(v) and (not np.isfinite(dat[i]) or v < dat[i]):
+                    dat[i] = v
     coh = np.full(n, np.nan)
     noiseless = np.zeros(n, bool)
     for i, m in enumerate(ms):

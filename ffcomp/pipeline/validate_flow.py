@@ -72,13 +72,13 @@ def run_validate(data, profile, compare=None, *, noise_floor: float | None = Non
 
 
 def run_diagnose(data, profile, *, candidates=None, folds: int = 4, noise_floor: float | None = None,
-                 refit_base: bool | None = None):
+                 refit_base: bool | None = None, extra=()):
     """Diagnose ``profile`` against ``data``; returns ``(Diagnosis, skipped)``."""
     from ..loop.diagnose import diagnose
 
     ms, skipped = load_data(data)
     return diagnose(profile, ms, candidates=candidates, folds=folds, noise_floor=noise_floor,
-                    refit_base=refit_base), skipped
+                    refit_base=refit_base, extra=extra), skipped
 
 
 def base_name(name: str) -> str:
@@ -99,7 +99,10 @@ def run_fit(data, profile, add=(), *, set_values=(), free=(), refit: bool = True
     res = fit_effects(profile, ms, add, refit=refit, set_values=set_values, free_extra=free, base=base)
     names = ", ".join(e["name"] for e in res.effects) or "no effects"
     new = fitted_profile(profile, res).with_(name=f"{base_name(profile.name)} + fitted {names}", source=None)
-    nfs = noise_floors(ms, override=noise_floor)
+    from ..measure.predict import BatchPredictor
+    from ..model.lpv import LpvModel
+
+    nfs = noise_floors(ms, override=noise_floor, predictions=BatchPredictor(ms)(LpvModel.from_profile(new)))
     return FitRun(res, new, nfs.mean, skipped, nfs.note)
 
 
