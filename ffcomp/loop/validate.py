@@ -290,9 +290,8 @@ def validate(profile_or_model, measurements, *, name: str | None = None,
     res = _resonances(model, measurements)
     scores = []
     nfs = noise_floors(measurements, override=noise_floor, predictions=preds)
-    for m, Hp, (fd, fm), nf in zip(measurements, preds, res, nfs.values):
+    for m, Hp, (fd, fm), nf, src in zip(measurements, preds, res, nfs.values, nfs.sources):
         names, edges = band_edges(fd, fm)
-        src = nfs.source
         scores.append(MeasurementScore(
             label=m.label, path=m.path, kind=m.kind, input=m.input, output=m.output,
             position_mm=tuple(float(v) for v in m.position_mm), n_points=len(m.freq_hz),

@@ -102,6 +102,8 @@ class NoiseFloors:
     from_data: np.ndarray
     from_coherence: np.ndarray
     note: str = ""
+    #: where each measurement's floor came from (``coherence``, ``data`` or ``given``)
+    sources: tuple = ()
 
     @property
     def mean(self) -> float:
@@ -153,7 +155,7 @@ def noise_floors(measurements, *, override: float | None = None, ratio_tol: floa
     if override is not None:
         if not (np.isfinite(override) and override > 0):
             raise ValueError(f"--noise-floor must be a positive number, got {override!r}")
-        return NoiseFloors(np.full(n, float(override)), "given", dat, coh, "")
+        return NoiseFloors(np.full(n, float(override)), "given", dat, coh, "", ("given",) * n)
     fill = float(np.nanmedian(dat)) if np.any(np.isfinite(dat)) else 0.0
     dat_f = np.where(np.isfinite(dat), dat, fill)
     has_c = np.isfinite(coh) & ~noiseless
@@ -186,7 +188,8 @@ def noise_floors(measurements, *, override: float | None = None, ratio_tol: floa
         src = "coherence"
     else:
         src = "coherence and data"
-    return NoiseFloors(values, src, dat, coh, note)
+    per = tuple("coherence" if np.isfinite(coh[i]) and not (note and has_c[i]) else "data" for i in range(n))
+    return NoiseFloors(values, src, dat, coh, note, per)
 
 
 def below_floor_note(mean_residual: float, floor: float, source: str, factor: float = 0.7) -> str:
