@@ -97,9 +97,12 @@ class TowerScale(Effect):
             if bits:
                 parts.append(f"tower {t}: {', '.join(bits)} (carriage mode {fr[j] - 1:+.1%})")
         if not parts:
-            return "all towers within 1 % of the profile"
+            parts.append("all towers within 1 % of the profile")
         j = int(np.argmax(np.abs(fr - 1)))
         odd = ""
         if abs(fr[j] - 1) > 0.02:
             odd = f"; tower {_T[j]}'s mode is {'low' if fr[j] < 1 else 'high'}"
-        return "; ".join(parts) + odd
+        # relative to tower A (what the data determine when the base is refitted too), always shown
+        rel = ", ".join(f"{w}_{t}/{w}_A = {self._vec(n)[i] / self._vec(n)[0]:.3f}"
+                        for w, n in (("k", "k"), ("m", "m"), ("c", "c")) for i, t in enumerate(_T) if i > 0)
+        return "; ".join(parts) + odd + f" [{rel}]"
