@@ -189,6 +189,8 @@ def _changed(c) -> str:
     """The candidate's own fitted parameters that moved from their defaults (value ± std. error)."""
     from ..model.effects import EFFECTS
 
+    if getattr(c, "kind", "effect") == "geometry":
+        return ", ".join(f"{k}={v:.4g}" for k, v in c.params.items())
     out = []
     for e in c.estimates:
         if not c.refit and e.effect != c.effect:
