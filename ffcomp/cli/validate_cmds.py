@@ -231,7 +231,9 @@ def diagnose_cmd(
             raise
         raise typer.BadParameter(str(e), param_hint="--candidates") from None
     _skipped(skipped)
-    _noise_notes(d.noise_note)
+    from ..measure.noise import below_floor_note
+
+    _noise_notes(d.noise_note, below_floor_note(float(np.mean(d.base_residual)), d.noise_floor, d.noise_source))
     real = _fit_command_for(data, profile)
     verdict = d.verdict
     for c in d.candidates:

@@ -426,6 +426,11 @@ def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
         return (f"Geometry, not a physical effect: {c.explanation}.{also} Correcting it removes {c.removed:.0%} of the "
                 f"error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise {mn:.4f}). Fix the "
                 f"profile: {c.command}, then diagnose again.{more}")
+    if c.refit and c.effect == "base dynamics":
+        return (f"No physical effect is missing: the two-sweep identification's base dynamics are off "
+                f"({c.explanation.removeprefix('base dynamics: ')}). Refitting them from all the sweeps removes "
+                f"{c.removed:.0%} of the error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise "
+                f"{mn:.4f}).{more}{fit}")
     if c.refit:
         return (f"Nothing new is missing: the profile's own effects ({c.effect}) have the wrong parameters. "
                 f"Refitting them removes {c.removed:.0%} of the error above the noise {how} (mean residual "
