@@ -105,4 +105,4 @@ class TowerScale(Effect):
         # relative to tower A (what the data determine when the base is refitted too), always shown
         rel = ", ".join(f"{w}_{t}/{w}_A = {self._vec(n)[i] / self._vec(n)[0]:.3f}"
                         for w, n in (("k", "k"), ("m", "m"), ("c", "c")) for i, t in enumerate(_T) if i > 0)
-        return "; ".join(parts) + odd + f" [{rel}]"
+        return "; ".join(parts) + odd + f"; relative to tower A: {rel}"
