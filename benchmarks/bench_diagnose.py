@@ -41,6 +41,7 @@ from ffcomp.loop.validate import validate  # noqa: E402
 from ffcomp.measure.virtual import virtual_measurements  # noqa: E402
 from ffcomp.model.effects import load_plugin  # noqa: E402
 from ffcomp.profile import default_profile, load_profile  # noqa: E402
+from ffcomp.profile_set import set_values  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 PLUGIN = ROOT / "docs" / "effects_example_motor_mount.py"
@@ -96,9 +97,10 @@ def run_set(printer: str, name: str, n_freq: int) -> dict:
         if d.status in ("ok", "unexplained") or not d.significant:
             break
         best = d.significant[0]
-        if best.kind == "geometry":
+        if best.kind == "geometry":  # the user corrects the profile (ffcomp profile set) and goes on
             did.append(f"geometry named: {best.set_value}")
-            break
+            prof = set_values(prof, [best.set_value])
+            continue
         fit = fit_effects(prof, ms, [] if best.refit else [best.effect])
         prof = fitted_profile(prof, fit)
         did.append(f"{best.label} ({best.removed:.0%})")
