@@ -364,6 +364,8 @@ def virtual_cmd(
     = None,
     no_averages_key: Annotated[bool, typer.Option("--no-averages-key", help="Do not write the 'averages' header "
                                                   "key (a coherence of unknown averages count).")] = False,
+    all_carriages: Annotated[bool, typer.Option("--all-carriages", help="Also the carriage sweeps of towers B and C "
+                                                "(at the end).")] = False,
     plugin: PluginOpt = None,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
@@ -382,7 +384,7 @@ def virtual_cmd(
     prof = load_profile_opt(profile)
     paths = vf.run_virtual(prof, effs, output, noise=noise, seed=seed, freq_hz=np.geomspace(fmin, fmax, n),
                            heights_mm=hs, offset_mm=offset, truth=truth, averages=averages,
-                           averages_key=not no_averages_key)
+                           averages_key=not no_averages_key, all_carriages=all_carriages)
     if json:
         print_json({"files": [str(p) for p in paths], "noise": noise, "seed": seed,
                     "truth": str(truth) if truth else None})

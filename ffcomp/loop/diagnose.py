@@ -297,7 +297,7 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
                                tuple(e.text for e in ev if e.key in keys and e.strength >= 0.5), tuple(full.effects)))
     if geometry and candidates is None:
         rot = _frame_candidate(profile, model0, base_specs, obj, r0, e0, nu2, base_sig, min_removed, min_gain)
-        if rot is not None and rot.gain > 0:  # a rotation that does not help is no candidate
+        if rot is not None and rot.gain >= min_gain:  # a rotation that does not help is no candidate
             cands.append(rot)
     cands.sort(key=lambda c: (not c.significant, c.mean_heldout))
     for j, c in enumerate(cands[:2]):

@@ -37,7 +37,7 @@ class PlanItem:
 
 
 def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.0, 130.0),
-                     axes=("x", "y", "z")) -> list[PlanItem]:
+                     axes=("x", "y", "z"), all_carriages: bool = False) -> list[PlanItem]:
     """The default sweep plan for ``profile`` (unreachable poses are dropped).
 
     Parameters
@@ -46,6 +46,9 @@ def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.
         Lateral offset of the off-centre poses, mm (default ``min(100, 0.75 print radius)``).
     heights_mm : sequence of float
         Nozzle heights of the task-space sweeps, mm (clipped into the profile's z range).
+    all_carriages : bool
+        Also the carriage sweeps of towers B and C (``qB -> qB``, ``qC -> qC``, effector detached),
+        appended at the end (what ``ffcomp identify --sweep`` uses against unequal towers).
     """
     g = profile.geometry
     off = min(100.0, 0.75 * g.print_radius_mm) if offset_mm is None else float(offset_mm)
@@ -61,6 +64,8 @@ def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.
             if not reachable(geo, np.array([[x, y, z]]) * 1e-3)[0]:
                 continue
             plan += [PlanItem("assembled", (x, y, z), a, a) for a in axes]
+    if all_carriages:
+        plan += [PlanItem("carriage", (0.0, 0.0, z_id), q, q) for q in ("qB", "qC")]
     return plan
 
 

@@ -121,7 +121,7 @@ def parse_effect_args(args) -> list[dict]:
 
 def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0, freq_hz=None,
                 heights_mm=(30.0, 130.0), offset_mm=None, truth=None, averages: int | None = None,
-                averages_key: bool = True) -> list[Path]:
+                averages_key: bool = True, all_carriages: bool = False) -> list[Path]:
     """Write virtual measurements of ``profile`` with hidden ``effects`` into ``out_dir``.
 
     ``truth``: optional path for the profile with the hidden effects (a TOML spoiler file).
@@ -131,7 +131,7 @@ def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0
     from ..profile import save_profile
 
     build_effects(effects)  # validate names and values before writing anything
-    plan = measurement_plan(profile, offset_mm=offset_mm, heights_mm=heights_mm)
+    plan = measurement_plan(profile, offset_mm=offset_mm, heights_mm=heights_mm, all_carriages=all_carriages)
     ms = virtual_measurements(profile, effects, freq_hz=freq_hz, noise=noise, seed=seed, plan=plan,
                               averages=averages, averages_key=averages_key)
     d = Path(out_dir)
