@@ -216,8 +216,10 @@ def fixed_band(measurements, predictions, noise, *, per_octave: float = 3.0, min
 
     Each sweep's relative complex residual is taken in 1/``per_octave``-octave bands on a common
     grid.  The signature is found when the worst band of at least ``min_share`` of the sweeps is
-    one band (or its neighbour), every carriage sweep among them, its residual is ``min_excess``
-    times the noise and ``min_contrast`` times the residual outside it (medians).  No effect of
+    one band (or its neighbour), not one of the two bands at either end of the grid (a misfit
+    growing towards an end is a trend: a delay, a lag), every carriage sweep among them, its
+    residual is ``min_excess`` times the noise and ``min_contrast`` times the residual outside it
+    (medians).  No effect of
     the library does that: they all move with pose or act on the effector.  Returns None if absent.
     """
     from .metrics import complex_residual
@@ -229,31 +231,34 @@ def fixed_band(measurements, predictions, noise, *, per_octave: float = 3.0, min
     f_hi = max(float(m.freq_hz[-1]) for m in ms)
     k0, k1 = int(np.floor(np.log2(f_lo) * per_octave)), int(np.ceil(np.log2(f_hi) * per_octave))
     edges = 2.0 ** (np.arange(k0, k1 + 1) / per_octave)
-    worst, ratio, contrast = [], [], []
-    for m, Hp, nu in zip(ms, predictions, noise):
-        best = (-1, -np.inf, np.nan)
-        for j in range(len(edges) - 1):
+    nb = len(edges) - 1
+    bands = np.full((len(ms), nb), np.nan)
+    rest = np.full((len(ms), nb), np.nan)
+    for i, (m, Hp) in enumerate(zip(ms, predictions)):
+        for j in range(nb):
             sel = (m.freq_hz >= edges[j]) & (m.freq_hz < edges[j + 1])
             if sel.sum() < 3:
                 continue
-            r = complex_residual(m.H[sel], Hp[sel], m.weights[sel])
-            if r > best[1]:
-                rest = complex_residual(m.H[~sel], Hp[~sel], m.weights[~sel]) if (~sel).sum() >= 3 else np.nan
-                best = (j, r, rest)
-        worst.append(best[0])
-        ratio.append(best[1] / max(float(nu), 1e-12))
-        contrast.append(best[1] / best[2] if np.isfinite(best[2]) and best[2] > 0 else np.inf)
-    worst = np.array(worst)
+            bands[i, j] = complex_residual(m.H[sel], Hp[sel], m.weights[sel])
+            if (~sel).sum() >= 3:
+                rest[i, j] = complex_residual(m.H[~sel], Hp[~sel], m.weights[~sel])
+    ok = np.isfinite(bands).any(axis=1)
+    worst = np.where(ok, np.argmax(np.where(np.isfinite(bands), bands, -np.inf), axis=1), -1)
     vals, counts = np.unique(worst[worst >= 0], return_counts=True)
     if not len(vals):
         return None
     j = int(vals[np.argmax(counts)])
+    if j < 2 or j > nb - 3:
+        return None  # at an end of the band: a trend (a delay, a lag), not a resonance
     hit = np.abs(worst - j) <= 1
     share = float(hit.mean())
     carriage = np.array([m.kind == "carriage" for m in ms])
-    exc = float(np.median(np.array(ratio)[hit]))
-    con = float(np.median(np.array(contrast)[hit]))
-    if share < min_share or exc < min_excess or con < min_contrast or (carriage.any() and not hit[carriage].all()):
+    nu = np.maximum(np.asarray(noise, float), 1e-12)
+    peak = bands[np.arange(len(ms)), np.clip(worst, 0, nb - 1)]
+    exc = float(np.median((peak / nu)[hit]))
+    con = float(np.nanmedian((peak / rest[np.arange(len(ms)), np.clip(worst, 0, nb - 1)])[hit]))
+    if (share < min_share or exc < min_excess or con < min_contrast
+            or (carriage.any() and not hit[carriage].all())):
         return None
     poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in ms}
     hit_poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m, h in zip(ms, hit) if h}
