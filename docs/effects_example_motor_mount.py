@@ -25,6 +25,9 @@ unit gain at low frequency (the mount does not lose steps), ``1 + mu`` far above
 on every tower, at every pose, and in the carriage sweep too (effector detached): the signature
 that no effect of the library has.
 
+Limitation: ``drive_tf`` is honoured by the LPV frequency response and state space (validate,
+diagnose, fit, virtual-measure), not yet by the nonlinear simulator or the compensation kernels.
+
 The interface
 -------------
 Subclass :class:`ffcomp.model.effects.Effect`, give it a ``name``, its ``params``

@@ -136,3 +136,18 @@ def test_plugin_errors_name_the_file(capsys, tmp_path):
     toml.write_text(TRUTH.read_text() + '\n[[effects]]\nname = "motor_mount"\nplugin = "nowhere.py"\n')
     code, _, err = run(capsys, "validate", tmp_path, "--profile", toml)
     assert code != 0 and "nowhere.py" in err
+
+
+def test_plugin_from_an_installed_module(tmp_path, monkeypatch):
+    from ffcomp.model.effects import EFFECTS, build_effects, load_plugin
+
+    pkg = tmp_path / "my_effects_pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(PLUGIN.read_text().replace('name = "motor_mount"', 'name = "mount_pkg"'))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert load_plugin("my_effects_pkg") == ["mount_pkg"]
+    assert EFFECTS["mount_pkg"].plugin == "my_effects_pkg"
+    eff = build_effects([{"name": "mount_pkg", "plugin": "my_effects_pkg", "f_hz": 300.0}])[0]
+    assert eff.values["f_hz"] == 300.0
+    with pytest.raises(ValueError, match="cannot import"):
+        load_plugin("no_such_module_anywhere")
