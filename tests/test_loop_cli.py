@@ -151,3 +151,16 @@ def test_plugin_from_an_installed_module(tmp_path, monkeypatch):
     assert eff.values["f_hz"] == 300.0
     with pytest.raises(ValueError, match="cannot import"):
         load_plugin("no_such_module_anywhere")
+
+
+def test_identify_refined_with_a_whole_directory_reaches_the_floor(capsys, tmp_path):
+    from ffcomp.loop.validate import validate
+
+    ms = make_set([], n_freq=80, heights=(30.0, 130.0), seed=2)
+    d = _write(ms, tmp_path / "data")
+    save_profile(truth(), tmp_path / "g.toml")
+    out = run_json(capsys, "identify", d / "00.csv", d / "01.csv", "--m-n", "0.141", "--m-f", "0.029", "--profile",
+                   tmp_path / "g.toml", "--sweep", d, "-o", tmp_path / "p.toml")
+    assert out["refined"]["mean_residual_after"] < out["refined"]["mean_residual_before"]
+    v = validate(load_profile(tmp_path / "p.toml"), ms)
+    assert v.mean_residual <= 1.25 * v.noise_floor

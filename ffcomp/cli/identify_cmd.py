@@ -29,8 +29,9 @@ def identify_cmd(
     output: Annotated[Path, typer.Option("--output", "-o", help="Write the identified profile here.")] = None,
     profile: ProfileOpt = None,
     sweep: Annotated[Optional[List[Path]], typer.Option(
-        "--sweep", help="More FRF files to refine with (repeatable): the carriage sweeps of towers B and C "
-        "(kind: carriage, qB->qB, qC->qC) remove the bias of unequal towers; assembled sweeps elsewhere help too.")]
+        "--sweep", help="More FRF files (or a directory of them) to refine with, repeatable: the carriage sweeps "
+        "of towers B and C (kind: carriage, qB->qB, qC->qC) remove the bias of unequal towers; assembled sweeps "
+        "elsewhere pin the effector damping b_nt, which the two sweeps determine poorly.")]
     = None,
     json: JsonOpt = False,
     plot: PlotOpt = None,
@@ -65,10 +66,14 @@ def identify_cmd(
     refined = None
     if sweep:
         from ..loop.identify_refine import refine_identification
+        from ..measure.dataset import load_dataset
 
-        refined = refine_identification(new, [c, a] + [load_frf(p) for p in sweep])
+        same = {Path(carriage).resolve(), Path(assembled).resolve()}
+        extra = [m for p in sweep for m in (load_dataset(p) if Path(p).is_dir() else [load_frf(p)])
+                 if m.path is None or Path(m.path).resolve() not in same]
+        refined = refine_identification(new, [c, a] + extra)
         new = refined.profile.with_(name=f"{base_name(base.name)} (identified from {carriage.name}, "
-                                    f"{assembled.name} + {len(sweep)} sweeps)")
+                                    f"{assembled.name} + {len(extra)} sweeps)")
     if output:
         save_profile(new, output)
     if plot:
@@ -104,7 +109,7 @@ def identify_cmd(
                   f"{f.r2_mag_db:.4f}", f"{f.r2_phase:.4f}")
     console.print(t)
     if refined is not None:
-        console.print(f"refined with {len(sweep)} more sweeps (towers with a carriage sweep: "
+        console.print(f"refined with {len(refined.residual_before) - 2} more sweeps (towers with a carriage sweep: "
                       f"{', '.join(refined.towers) or 'none besides A'}): mean residual "
                       f"{np.mean(refined.residual_before):.4f} -> {np.mean(refined.residual_after):.4f}; "
                       f"belt stiffness k_B/k_A = {refined.k_ratio[1]:.3f}, k_C/k_A = {refined.k_ratio[2]:.3f}")
