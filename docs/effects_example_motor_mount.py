@@ -18,10 +18,11 @@ commanded rotor position and the belt.  Seen from the belt, the drive gains a po
 mount's resonance ``f_hz`` and a zero pair below it (the anti-resonance where the mount and the
 belt load balance):
 
-    F_mount(s) = (1 + mu) (s^2 + 2 zeta wz s + wz^2) / (s^2 + 2 zeta wp s + wp^2),
+    F_mount(s) = (1 + mu) (s^2 + 2 zeta_zero wz s + wz^2) / (s^2 + 2 zeta wp s + wp^2),
     wp = 2 pi f_hz,  wz = wp / sqrt(1 + mu),
 
-unit gain at low frequency (the mount does not lose steps), ``1 + mu`` far above the mode.  It acts
+unit gain at low frequency (the mount does not lose steps), ``1 + mu`` far above the mode.  With
+``mu < 0`` the zero pair lies above the pole pair (a mode seen through a stiffer path first).  It acts
 on every tower, at every pose, and in the carriage sweep too (effector detached): the signature
 that no effect of the library has.
 
@@ -54,17 +55,18 @@ class MotorMount(Effect):
     params = {
         "f_hz": Param(200.0, "Hz", 1.0, 5000.0, "mount resonance", search=(120.0, 400.0)),
         "zeta": Param(0.05, "", 0.001, 1.0, "damping ratio of the mount mode", search=(0.005, 0.2)),
-        "mu": Param(0.3, "", 0.0, 10.0, "mount compliance ratio (high-frequency gain 1 + mu)", search=(0.0, 1.5)),
+        "mu": Param(0.3, "", -0.9, 10.0, "mount compliance ratio (high-frequency gain 1 + mu)", search=(-0.5, 1.5)),
+        "zeta_zero": Param(0.05, "", 0.001, 1.0, "damping ratio of the anti-resonance", search=(0.005, 0.2)),
     }
 
     def apply(self, mats, model):
         """Append ``F_mount`` to the drives' extra transfer functions."""
         wp = 2.0 * np.pi * self.values["f_hz"]
-        mu, z = self.values["mu"], self.values["zeta"]
-        if mu == 0.0:
+        mu, z, zz = self.values["mu"], self.values["zeta"], self.values["zeta_zero"]
+        if mu == 0.0 and z == zz:
             return mats
         wz = wp / np.sqrt(1.0 + mu)
-        num = (1.0 + mu) * np.array([1.0, 2.0 * z * wz, wz**2])
+        num = (1.0 + mu) * np.array([1.0, 2.0 * zz * wz, wz**2])
         den = np.array([1.0, 2.0 * z * wp, wp**2])
         return mats.replace(drive_tf=tuple(mats.drive_tf) + ((num, den),))
 

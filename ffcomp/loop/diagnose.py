@@ -17,8 +17,11 @@ noise floor ``nu`` (:mod:`ffcomp.measure.noise`):
   is significant when it removes at least ``min_removed`` of the excess and at least
   ``min_gain * mean(nu^2)`` in absolute terms;
 * the status is ``ok`` (nothing significant to explain), ``explained`` (the best candidate removes
-  at least ``explain_fraction`` of the excess), ``partial`` (it is significant but leaves more:
-  fit it and diagnose again, or something outside the library is missing) or ``unexplained``.
+  at least ``explain_fraction`` of the excess and leaves less than twice the noise, RMS),
+  ``partial`` (it is significant but leaves more: fit it and diagnose again, or something outside
+  the library is missing) or ``unexplained`` (no candidate is significant, or one frequency band
+  fails at every pose and in the carriage sweep and the best candidate leaves more than twice the
+  noise: :func:`~ffcomp.loop.evidence.fixed_band`).
 
 Candidates are ranked by held-out residual, significant ones first; when the profile already has
 effects, a new effect is significant only if it also beats refitting those effects alone by the
@@ -308,6 +311,8 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     sig = [c for c in cands if c.significant]
     status = ("ok" if not base_sig else "unexplained" if not sig else
               "explained" if sig[0].removed >= explain_fraction else "partial")
+    if status == "explained" and np.mean(sig[0].heldout**2) > 4.0 * nu2:
+        status = "partial"  # most of a large error, but what is left is still twice the noise or more
     if fb is not None and status == "partial" and np.mean(sig[0].heldout**2) > 4.0 * nu2:
         status = "unexplained"  # a fixed-frequency misfit the best candidate leaves: outside the library
     verdict = _verdict(r0, nu, status, cands, cv, fb)
