@@ -48,7 +48,7 @@ PLUGIN = ROOT / "docs" / "effects_example_motor_mount.py"
 BELT = {"name": "belt_span", "l1_ref_mm": 300.0, "loop_mm": 1300.0}
 TOWER_B = {"name": "tower_scale", "k_scale_B": 0.75}
 FOREARM = {"name": "forearm_inertia", "scale": 1.0}
-MOUNT = {"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6}
+MOUNT = {"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6, "zeta_zero": 0.02}
 
 # name -> (hidden effects, geometry change of the profile under test, what to check)
 SETS = {

@@ -60,7 +60,7 @@ def test_identify_outside_the_model_writes_a_physical_profile_and_warns(capsys, 
     from ffcomp.model.effects import load_plugin
 
     load_plugin(str(PLUGIN))
-    ms = make_set([{"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6}], n_freq=120,
+    ms = make_set([{"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6, "zeta_zero": 0.02}], n_freq=120,
                   heights=(30.0,), seed=12)
     _write(ms[:2], tmp_path / "s")
     code, _, err = run(capsys, "identify", tmp_path / "s" / "00.csv", tmp_path / "s" / "01.csv", "--m-n", "0.141",

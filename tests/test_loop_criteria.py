@@ -106,7 +106,7 @@ def test_effect_outside_the_library_identify_diagnose_and_a_plugin():
     from ffcomp.model.effects import load_plugin
 
     load_plugin(str(PLUGIN))
-    mount = {"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6}
+    mount = {"name": "motor_mount", "f_hz": 250.0, "zeta": 0.03, "mu": 0.6, "zeta_zero": 0.02}
     ms = make_set([mount], n_freq=100, heights=(30.0,), seed=7)
     ident, prof = identified(ms)
     # identify: physical values, a warning naming the sweep and the band, still a usable profile

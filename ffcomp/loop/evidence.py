@@ -211,7 +211,7 @@ def evidence(ft: Features) -> list[Evidence]:
 
 
 def fixed_band(measurements, predictions, noise, *, per_octave: float = 3.0, min_share: float = 0.8,
-               min_excess: float = 5.0, min_contrast: float = 2.0) -> Evidence | None:
+               min_excess: float = 5.0, min_contrast: float = 1.5) -> Evidence | None:
     """A misfit concentrated in one frequency band, the same at every pose and in the carriage sweep.
 
     Each sweep's relative complex residual is taken in 1/``per_octave``-octave bands on a common
