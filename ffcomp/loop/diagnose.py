@@ -405,8 +405,9 @@ def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
                 "nothing significant to diagnose.")
     if status == "unexplained":
         best = cands[0] if cands else None
-        tail = (f" The best candidate, {best.label}, removes only {max(best.removed, 0):.0%} of the error above the "
-                f"noise {how}.") if best else ""
+        tail = (f" The best candidate, {best.label}, removes {max(best.removed, 0):.0%} of the error above the "
+                f"noise {how} and leaves {best.mean_heldout:.4f}, {best.mean_heldout / mn:.1f}x the noise."
+                if best else "")
         band = f" The evidence points at it: {fb.text}." if fb is not None else ""
         return (f"The model misses something (mean residual {m0:.4f}, noise {mn:.4f}) that no candidate effect "
                 f"explains.{band}{tail} Look at where it fails (ffcomp validate) and the evidence below.")
