@@ -175,8 +175,21 @@ def _quality(meas: FrfMeasurement, Hfit) -> dict:
     }
 
 
+def log_density_weights(freq_hz) -> np.ndarray:
+    """Weights proportional to each point's share of log frequency (mean 1): every decade counts the
+    same whatever the grid, so a linear grid does not let the top of the band dominate the fit."""
+    x = np.log(np.asarray(freq_hz, float))
+    if len(x) < 3:
+        return np.ones_like(x)
+    d = np.empty_like(x)
+    d[1:-1] = 0.5 * (x[2:] - x[:-2])
+    d[0], d[-1] = x[1] - x[0], x[-1] - x[-2]
+    return d / np.mean(d)
+
+
 def _rel_residual(meas: FrfMeasurement, Hmod):
-    r = (Hmod - meas.H) / np.maximum(np.abs(meas.H), 1e-12) * np.sqrt(meas.weights)
+    w = meas.weights * log_density_weights(meas.freq_hz)
+    r = (Hmod - meas.H) / np.maximum(np.abs(meas.H), 1e-12) * np.sqrt(w)
     return np.concatenate([r.real, r.imag])
 
 
