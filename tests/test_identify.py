@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ffcomp.errors import MeasurementError, SolverError
-from ffcomp.identify import fit_eq22, identify, sk_fit
+from ffcomp.loop.identify import fit_eq22, identify, sk_fit
 from ffcomp.measure.synthetic import identification_sweeps
 
 TRUE = {"m": 0.177, "c": 5.87, "b": 18.0, "k": 9.44e4, "b_nt": 27.9}
@@ -73,3 +73,21 @@ def test_off_centre_and_short_sweeps_are_refused(profile):
         identify(short, a, 0.156, 0.032)
     with pytest.raises(ValueError, match="m_n"):
         identify(c, a, -1.0, 0.032)
+
+
+def test_linear_grid_and_log_density_weights():
+    """A linear frequency grid (most points above the resonances) identifies as well as a log grid."""
+    from ffcomp.loop.identify import log_density_weights
+    from ffcomp.measure.synthetic import identification_sweeps
+    from ffcomp.profile import load_profile
+
+    w = log_density_weights(np.geomspace(5, 400, 50))
+    assert np.allclose(w, 1.0)
+    f = np.arange(5.0, 400.5, 2.0)
+    w = log_density_weights(f)
+    assert w[0] > 10 * w[-1] and np.mean(w) == pytest.approx(1.0)
+    truth = load_profile("samples/profiles/other_delta_truth.toml")
+    c, a = identification_sweeps(truth, f, noise=0.02, seed=4)
+    res = identify(c, a, truth.dynamics.m_n, truth.dynamics.m_f)
+    for key in ("m", "k", "c", "b"):
+        assert getattr(res, key) == pytest.approx(getattr(truth.dynamics, key)[0], rel=0.05), key

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from ffcomp.loop.validate import band_edges, compare, validate
 from ffcomp.measure.frf_file import FrfMeasurement, save_frf
 from ffcomp.measure.virtual import measurement_plan, virtual_measurements
-from ffcomp.validate import band_edges, compare, validate
 
 F = np.geomspace(5, 400, 80)
 

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, List, Optional
 
 import typer
 from rich.markup import escape
@@ -39,6 +39,9 @@ def import_cmd(
     firmware: Annotated[str, typer.Option(help="With --m665: marlin or reprap.")] = "marlin",
     print_radius: Annotated[Optional[float], typer.Option(help="With --m665: print radius, mm.")] = None,
     output: Annotated[Path, typer.Option("--output", "-o", help="Profile TOML to write.")] = Path("printer.toml"),
+    frame: Annotated[str, typer.Option(help="Tower-angle frame: firmware (A/B/C at 210/330/90, as G-code sees the "
+                                       "printer) or paper (0/120/240, tower A on +x, as FRF files are written).")]
+    = "firmware",
     profile: ProfileOpt = None,
 ) -> None:
     """Import geometry and limits from firmware configuration; dynamics come from --profile."""
@@ -56,6 +59,11 @@ def import_cmd(
     notes: list[str] = []
     prof = (from_klipper_cfg(klipper, base, notes=notes) if klipper
             else from_m665(m665, base, print_radius_mm=print_radius, firmware=firmware))
+    from ..profile_set import FRAMES, to_frame
+
+    if frame not in FRAMES:
+        raise typer.BadParameter(f"expected one of {', '.join(FRAMES)}, got {frame!r}", param_hint="--frame")
+    prof = to_frame(prof, frame)
     save_profile(prof, output)
     g = prof.geometry
 
@@ -67,3 +75,33 @@ def import_cmd(
                   f"{prof.limits.planner}", highlight=False)
     for n in notes:
         err_console.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True)
+
+
+@profile_app.command("set")
+def set_cmd(
+    args: Annotated[List[str], typer.Argument(help="[PROFILE.toml] KEY=VALUE ...: section.key=value "
+                                              "(geometry.delta_radius_mm=155, geometry.tower_angles_deg=0,120,240), "
+                                              "name=TEXT or effects.NAME.PARAM=VALUE.")],
+    output: Annotated[Optional[Path], typer.Option("--output", "-o", help="Write here (default: in place).")] = None,
+    profile: ProfileOpt = None,
+) -> None:
+    """Set profile values, validated like a loaded profile; writes the TOML atomically."""
+    from ..errors import ProfileError
+    from ..profile import save_profile
+    from ..profile_set import set_values
+
+    path = profile
+    if args and "=" not in args[0]:
+        path, args = Path(args[0]), args[1:]
+    if not args:
+        raise typer.BadParameter("nothing to set: give KEY=VALUE ...")
+    target = output or path
+    if target is None:
+        raise typer.BadParameter("give the profile to edit (or -o to write the edited default somewhere)")
+    prof = load_profile_opt(path)
+    try:
+        new = set_values(prof, args)
+    except ProfileError as e:
+        raise typer.BadParameter(str(e)) from None
+    save_profile(new.with_(source=None), target)
+    console.print(f"wrote {target}: " + ", ".join(args), highlight=False)

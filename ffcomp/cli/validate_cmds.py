@@ -10,9 +10,46 @@ import typer
 from rich.table import Table
 
 from ..pipeline import validate_flow as vf
-from .common import JsonOpt, ProfileOpt, app, console, err_console, load_profile_opt, parse_triple, print_json
+from .common import JsonOpt, ProfileOpt, app, console, err_console, load_profile_opt, parse_triple
+from .common import print_json as _print_json
+
+
+def print_json(obj) -> None:
+    """JSON on stdout with NaN/Infinity as null (valid JSON)."""
+    from ..report.json_safe import finite_json
+
+    _print_json(finite_json(obj))
 
 DataArg = Annotated[Path, typer.Argument(help="Directory of FRF files (FRF_FORMAT *.csv, UFF *.uff), or one file.")]
+NoiseOpt = Annotated[Optional[float], typer.Option(
+    "--noise-floor", help="Noise floor to use (relative complex residual of a perfect model, e.g. 0.02) instead "
+    "of the estimates from the data and the coherence.")]
+BaseOpt = Annotated[Optional[bool], typer.Option(
+    "--base/--no-base", help="Refit the base dynamics (m, c, b, k, b_nt, drive) with the effects (default: when "
+    "the data have sweeps at 3 poses or more).", show_default=False)]
+
+PluginOpt = Annotated[Optional[List[str]], typer.Option(
+    "--plugin", help="Load effects from a Python file or an installed module (repeatable); see "
+    "docs/effects_example_motor_mount.py.")]
+
+
+def _load_plugins(refs) -> list[str]:
+    """Load the plug-ins; the names of the effects they define."""
+    from ..model.effects import load_plugin
+
+    names: list[str] = []
+    for r in refs or []:
+        try:
+            names += load_plugin(r)
+        except ValueError as e:
+            raise typer.BadParameter(str(e), param_hint="--plugin") from None
+    return names
+
+
+def _noise_notes(note: str, below: str = "") -> None:
+    for text in (note, below):
+        if text:
+            err_console.print(f"[yellow]note[/] {text}", highlight=False)
 
 
 def _f(v, nd=4) -> str:
@@ -63,12 +100,15 @@ def validate_cmd(
     plot: Annotated[Optional[Path], typer.Option("--plot", help="Write PNGs (Bode overlays, error map) here.")] = None,
     top: Annotated[int, typer.Option(help="Rows in the ranked-failures table.")] = 10,
     bode: Annotated[int, typer.Option(help="Bode overlays in the HTML report (the worst fits).")] = 12,
+    noise_floor: NoiseOpt = None,
+    plugin: PluginOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Compare the profile's model with measured FRFs: R^2 (Eq. 36), complex residual, where it fails."""
+    _load_plugins(plugin)
     prof = load_profile_opt(profile)
     before = load_profile_opt(compare) if compare else None
-    run = vf.run_validate(data, prof, before)
+    run = vf.run_validate(data, prof, before, noise_floor=noise_floor)
     rep = run.report
     others = (run.before,) if run.before is not None else ()
     r_mm = prof.geometry.print_radius_mm
@@ -82,6 +122,7 @@ def validate_cmd(
 
         write_plots(plot, rep, others=others, print_radius_mm=r_mm)
     _skipped(run.skipped)
+    _noise_notes(rep.noise_note, rep.below_floor)
     if json:
         print_json(run.to_dict())
         return
@@ -130,18 +171,40 @@ def validate_cmd(
             console.print(f"wrote {what}: {path}")
 
 
+def _fit_command_for(data, profile):
+    """``candidate -> the ffcomp fit command`` with the real data and profile paths."""
+    out = (Path(profile).with_name(Path(profile).stem + "_fitted.toml") if profile else Path("fitted.toml"))
+
+    def real(c) -> str:
+        if getattr(c, "kind", "effect") == "geometry":
+            return f"ffcomp profile set {profile or 'printer.toml'} {c.set_value}"
+        add = "" if c.refit else f" --add {c.effect}"
+        prof = f" --profile {profile}" if profile else ""
+        return f"ffcomp fit {data}{prof}{add} -o {out}"
+
+    return real
+
+
 def _changed(c) -> str:
     """The candidate's own fitted parameters that moved from their defaults (value ± std. error)."""
     from ..model.effects import EFFECTS
 
+    if getattr(c, "kind", "effect") == "geometry":
+        return ", ".join(f"{k}={v:.4g}" for k, v in c.params.items())
     out = []
     for e in c.estimates:
         if not c.refit and e.effect != c.effect:
-            continue  # the profile's own effects, refitted alongside
+            continue  # the base and the profile's own effects, refitted alongside
+        if e.effect == "base":
+            rel = abs(e.value - e.start) / max(abs(e.start), 1e-12)
+            if rel > 0.02:
+                out.append(f"{e.param}={e.value:.4g}")
+            continue
         p = EFFECTS[e.effect].params[e.param]
         se = e.stderr if np.isfinite(e.stderr) else 0.0
         if abs(e.value - p.default) > max(2 * se, 0.005 * (e.hi - e.lo)):
-            out.append(f"{e.param}={e.value:.4g}" + (f"±{e.stderr:.2g}" if np.isfinite(e.stderr) else ""))
+            out.append(f"{e.param}={e.value:.4g}" + (f"±{e.stderr:.2g}" if np.isfinite(e.stderr) else "")
+                       + (" (at bound)" if e.at_bound else ""))
     return ", ".join(out) or "(no change from the defaults)"
 
 
@@ -151,33 +214,52 @@ def diagnose_cmd(
     profile: ProfileOpt = None,
     candidates: Annotated[Optional[str], typer.Option(help="Comma-separated effects to try (default: all).")] = None,
     folds: Annotated[int, typer.Option(help="Cross-validation folds (by pose).")] = 4,
+    noise_floor: NoiseOpt = None,
+    base: BaseOpt = None,
+    plugin: PluginOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Which physical effect is missing?  Fits each candidate, scores it on held-out poses, explains."""
+    extra = _load_plugins(plugin)
     prof = load_profile_opt(profile)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     try:
-        d, skipped = vf.run_diagnose(data, prof, candidates=names, folds=folds)
+        d, skipped = vf.run_diagnose(data, prof, candidates=names, folds=folds, noise_floor=noise_floor,
+                                     refit_base=base, extra=extra)
     except ValueError as e:
         if type(e) is not ValueError:
             raise
         raise typer.BadParameter(str(e), param_hint="--candidates") from None
     _skipped(skipped)
+    from ..measure.noise import below_floor_note
+
+    _noise_notes(d.noise_note, below_floor_note(float(np.mean(d.base_residual)), d.noise_floor, d.noise_source))
+    real = _fit_command_for(data, profile)
+    verdict = d.verdict
+    for c in d.candidates:
+        verdict = verdict.replace(c.command, real(c))
     if json:
-        print_json(d.to_dict())
+        out = d.to_dict()
+        out["verdict"] = verdict
+        for c, cd in zip(d.candidates, out["candidates"]):
+            cd["command"] = real(c)
+        print_json(out)
         return
     console.print(f"[bold]{d.profile}[/]: {len(d.labels)} measurements at {d.n_poses} poses; noise floor "
                   f"{d.noise_floor:.4f} (from {d.noise_source}); base model mean residual "
                   f"{np.mean(d.base_residual):.4f}")
-    console.print(f"[bold]{d.verdict}[/]", highlight=False)
+    console.print(f"[bold]{verdict}[/]", highlight=False)
     t = Table(title=f"candidates, ranked by held-out residual ({d.folds}-fold cross-validation by pose)"
               if d.folds else "candidates (in-sample: too few poses to hold out)", title_justify="left")
-    for c in ("#", "effect", "held-out residual", "removed", "significant", "fitted parameters"):
+    for c in ("#", "effect", "held-out residual", "drop", "removed", "significant", "fitted parameters"):
         t.add_column(c, justify="left" if c in ("effect", "fitted parameters") else "right")
+    m0 = float(np.mean(d.base_residual))
     for i, c in enumerate(d.candidates, 1):
         ps = _changed(c)
-        t.add_row(str(i), c.label, _f(c.mean_heldout), f"{max(c.removed, -9.99):.0%}", "yes" if c.significant else "no",
-                  ps)
+        # "removed" is a share of the error above the noise: meaningless when the base is at the floor
+        removed = f"{max(c.removed, -9.99):.0%}" if d.base_significant else "-"
+        drop = f"{m0 / c.mean_heldout:.2f}x" if c.mean_heldout > 0 else "-"
+        t.add_row(str(i), c.label, _f(c.mean_heldout), drop, removed, "yes" if c.significant else "no", ps)
     console.print(t)
     for c in d.candidates[:3]:
         if c.significant:
@@ -191,7 +273,7 @@ def diagnose_cmd(
 
 
 def _set_values(items):
-    from ..fit_effects import parse_assignment
+    from ..loop.fit import parse_assignment
 
     out = []
     for s in items or []:
@@ -213,12 +295,16 @@ def fit_cmd(
     set_: Annotated[Optional[List[str]], typer.Option("--set", help="Fix EFFECT:PARAM=VALUE before fitting.")] = None,
     free: Annotated[Optional[List[str]], typer.Option("--free", help="Also fit EFFECT:PARAM (repeatable).")] = None,
     refit: Annotated[bool, typer.Option(help="Refit the profile's existing effects too.")] = True,
+    base: BaseOpt = None,
+    noise_floor: NoiseOpt = None,
+    plugin: PluginOpt = None,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
 ) -> None:
-    """Add effects to the profile and fit their parameters to the measurements."""
+    """Add effects to the profile and fit their parameters to the measurements (and the base dynamics)."""
     from ..profile import save_profile
 
+    _load_plugins(plugin)
     prof = load_profile_opt(profile)
     frees = []
     for s in free or []:
@@ -227,7 +313,8 @@ def fit_cmd(
             raise typer.BadParameter(f"{s!r}: expected EFFECT:PARAM", param_hint="--free")
         frees.append((name.strip(), param.strip()))
     try:
-        run = vf.run_fit(data, prof, add or [], set_values=_set_values(set_), free=frees, refit=refit)
+        run = vf.run_fit(data, prof, add or [], set_values=_set_values(set_), free=frees, refit=refit, base=base,
+                         noise_floor=noise_floor)
     except ValueError as e:
         if type(e) is not ValueError:
             raise
@@ -235,6 +322,7 @@ def fit_cmd(
     if output:
         save_profile(run.profile, output)
     _skipped(run.skipped)
+    _noise_notes(run.noise_note)
     if json:
         print_json({**run.to_dict(), "output": str(output) if output else None})
         return
@@ -247,7 +335,12 @@ def fit_cmd(
                   f"{e.start:.4g}", f"at bound [{e.lo:g}, {e.hi:g}]" if e.at_bound else "")
     console.print(t)
     console.print(f"mean complex residual {np.mean(r.residual_before):.4f} -> {np.mean(r.residual_after):.4f} "
-                  f"(noise floor {run.noise_floor:.4f}); {r.nfev} model evaluations")
+                  f"(noise floor {run.noise_floor:.4f}); {r.nfev} model evaluations"
+                  + ("; base dynamics refitted with the effects" if r.base is not None else ""))
+    bound = [f"{e.effect}:{e.param}" for e in r.estimates if e.at_bound]
+    if bound:
+        err_console.print(f"[yellow]warning[/] at a bound of its fit range: {', '.join(bound)} -- the true value may "
+                          "lie beyond it, or the effect stands in for another one (diagnose again)", highlight=False)
     if output:
         console.print(f"wrote {output}; check it: ffcomp validate {data} --profile {output}"
                       + (f" --compare {profile}" if profile else ""))
@@ -267,10 +360,18 @@ def virtual_cmd(
     heights: Annotated[str, typer.Option(help="Nozzle heights of the task sweeps, mm (comma-separated).")] = "30,130",
     offset: Annotated[Optional[float], typer.Option(help="Lateral offset of the off-centre poses, mm.")] = None,
     truth: Annotated[Optional[Path], typer.Option(help="Also write the hidden profile (a spoiler) here.")] = None,
+    averages: Annotated[Optional[int], typer.Option(help="Coherence as from this many H1 averages (default: 1).")]
+    = None,
+    no_averages_key: Annotated[bool, typer.Option("--no-averages-key", help="Do not write the 'averages' header "
+                                                  "key (a coherence of unknown averages count).")] = False,
+    all_carriages: Annotated[bool, typer.Option("--all-carriages", help="Also the carriage sweeps of towers B and C "
+                                                "(at the end).")] = False,
+    plugin: PluginOpt = None,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
 ) -> None:
     """Virtual measurement set from the LPV model with hidden effects (identification + validation sweeps)."""
+    _load_plugins(plugin)
     if not (0 < fmin < fmax) or n < 8:
         raise typer.BadParameter("need 0 < fmin < fmax and n >= 8", param_hint="--fmin/--fmax/--n")
     if not 0 <= noise < 1:
@@ -282,7 +383,8 @@ def virtual_cmd(
         raise typer.BadParameter(str(e), param_hint="--effect/--heights") from None
     prof = load_profile_opt(profile)
     paths = vf.run_virtual(prof, effs, output, noise=noise, seed=seed, freq_hz=np.geomspace(fmin, fmax, n),
-                           heights_mm=hs, offset_mm=offset, truth=truth)
+                           heights_mm=hs, offset_mm=offset, truth=truth, averages=averages,
+                           averages_key=not no_averages_key, all_carriages=all_carriages)
     if json:
         print_json({"files": [str(p) for p in paths], "noise": noise, "seed": seed,
                     "truth": str(truth) if truth else None})

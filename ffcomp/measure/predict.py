@@ -8,7 +8,7 @@ model with ``m_nt = b_nt = m_f = 0`` (effects still apply: belt span, tower scal
 other carriages through the frame, drive delay).
 
 :class:`BatchPredictor` evaluates a whole data set for many parameter values (the fits of
-:mod:`ffcomp.fit_effects`): one set of pose matrices per call, one joint response per frequency
+:mod:`ffcomp.loop.fit`): one set of pose matrices per call, one joint response per frequency
 grid, measurements picked out by row/column of ``J G J^-1``; :func:`predict` is the reference.
 """
 

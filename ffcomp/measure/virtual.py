@@ -37,7 +37,7 @@ class PlanItem:
 
 
 def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.0, 130.0),
-                     axes=("x", "y", "z")) -> list[PlanItem]:
+                     axes=("x", "y", "z"), all_carriages: bool = False) -> list[PlanItem]:
     """The default sweep plan for ``profile`` (unreachable poses are dropped).
 
     Parameters
@@ -46,6 +46,9 @@ def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.
         Lateral offset of the off-centre poses, mm (default ``min(100, 0.75 print radius)``).
     heights_mm : sequence of float
         Nozzle heights of the task-space sweeps, mm (clipped into the profile's z range).
+    all_carriages : bool
+        Also the carriage sweeps of towers B and C (``qB -> qB``, ``qC -> qC``, effector detached),
+        appended at the end (what ``ffcomp identify --sweep`` uses against unequal towers).
     """
     g = profile.geometry
     off = min(100.0, 0.75 * g.print_radius_mm) if offset_mm is None else float(offset_mm)
@@ -61,6 +64,8 @@ def measurement_plan(profile, *, offset_mm: float | None = None, heights_mm=(30.
             if not reachable(geo, np.array([[x, y, z]]) * 1e-3)[0]:
                 continue
             plan += [PlanItem("assembled", (x, y, z), a, a) for a in axes]
+    if all_carriages:
+        plan += [PlanItem("carriage", (0.0, 0.0, z_id), q, q) for q in ("qB", "qC")]
     return plan
 
 
@@ -71,7 +76,8 @@ def file_name(i: int, item: PlanItem) -> str:
 
 
 def virtual_measurements(profile, effects=(), *, freq_hz=None, noise: float = 0.02, seed: int = 0,
-                         plan=None, source: str | None = None) -> list[FrfMeasurement]:
+                         plan=None, source: str | None = None, averages: int | None = None,
+                         averages_key: bool = True) -> list[FrfMeasurement]:
     """Measurements of ``profile`` with ``effects`` (profile ``[[effects]]``-style dicts) added.
 
     Parameters
@@ -86,6 +92,12 @@ def virtual_measurements(profile, effects=(), *, freq_hz=None, noise: float = 0.
         Relative complex noise ``rel`` (0.02 = 2 %).
     seed : int
         Random seed (deterministic output).
+    averages : int, optional
+        Write the coherence an H1 estimate from ``averages`` averages would have for this noise,
+        ``1 / (1 + averages rel^2)`` (default: ``1 / (1 + rel^2)``, i.e. one average).
+    averages_key : bool
+        Write the ``averages`` header key (when ``averages`` is given).  ``False`` mimics a file
+        whose coherence was computed from several averages without saying how many.
 
     Returns
     -------
@@ -100,10 +112,15 @@ def virtual_measurements(profile, effects=(), *, freq_hz=None, noise: float = 0.
     stubs = [FrfMeasurement(f, np.zeros_like(f, complex), None, it.kind, np.asarray(it.position_mm, float),
                             it.input, it.output, src) for it in plan]
     out = []
+    n_avg = 1 if averages is None else int(averages)
+    if n_avg < 1:
+        raise ValueError(f"averages must be >= 1, got {averages!r}")
+    meta = {"averages": str(n_avg)} if averages is not None and averages_key else {}
     for m, H in zip(stubs, BatchPredictor(stubs)(model)):
         if noise > 0:
-            Hn, coh = add_complex_noise(H, noise, rng)
+            Hn, _ = add_complex_noise(H, noise, rng)
+            coh = np.full(np.shape(H), 1.0 / (1.0 + n_avg * noise**2))
         else:
             Hn, coh = H, np.ones_like(f)
-        out.append(FrfMeasurement(f, Hn, coh, m.kind, m.position_mm, m.input, m.output, src))
+        out.append(FrfMeasurement(f, Hn, coh, m.kind, m.position_mm, m.input, m.output, src, meta=dict(meta)))
     return out

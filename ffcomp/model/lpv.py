@@ -75,6 +75,10 @@ class PoseMatrices:
         Extra pure delay of each drive, s (0 for the paper's model).
     lag_s : ndarray, shape (3,)
         Extra first-order lag time constant of each drive, s (0 for the paper's model).
+    drive_tf : tuple of (num, den)
+        Extra transfer functions in series with every drive filter (polynomial coefficients in
+        ``s``, highest power first, proper, unit DC gain expected); set by effects such as a
+        compliant motor mount (an extra mode).  Empty for the paper's model.
     """
 
     xyz_m: np.ndarray
@@ -90,6 +94,7 @@ class PoseMatrices:
     d2: np.ndarray
     delay_s: np.ndarray
     lag_s: np.ndarray
+    drive_tf: tuple = ()
 
     @property
     def n_poses(self) -> int:
@@ -173,6 +178,8 @@ def _drive_filter(s: np.ndarray, mats: PoseMatrices, delay: str) -> np.ndarray:
     s = s[:, None]
     f = (mats.d1 * s + mats.d0) / (s**2 + mats.d2 * s + mats.d0)
     f = f / (1.0 + mats.lag_s * s)
+    for num, den in mats.drive_tf:
+        f = f * (np.polyval(num, s) / np.polyval(den, s))
     if np.any(mats.delay_s):
         if delay == "exact":
             f = f * np.exp(-mats.delay_s * s)
@@ -262,17 +269,20 @@ def mech_arrays(mats: PoseMatrices) -> tuple[np.ndarray, np.ndarray]:
     return A, B
 
 
-def drive_filter_ss(d0, d1, d2, lag_s=0.0, delay_s=0.0, pade_order: int = 6):
+def drive_filter_ss(d0, d1, d2, lag_s=0.0, delay_s=0.0, pade_order: int = 6, drive_tf=()):
     """State-space ``(a, b, c)`` of one drive filter ``F(s)`` (strictly proper, so ``d = 0``)."""
-    a, b, c = _drive_filter_ss(float(d0), float(d1), float(d2), float(lag_s), float(delay_s), int(pade_order))
+    tfs = tuple((tuple(float(v) for v in n), tuple(float(v) for v in d)) for n, d in drive_tf)
+    a, b, c = _drive_filter_ss(float(d0), float(d1), float(d2), float(lag_s), float(delay_s), int(pade_order), tfs)
     return a.copy(), b.copy(), c.copy()
 
 
 @lru_cache(maxsize=64)
-def _drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order):
+def _drive_filter_ss(d0, d1, d2, lag_s, delay_s, pade_order, drive_tf=()):
     sys = control.tf([d1, d0], [1.0, d2, d0])
     if lag_s > 0:
         sys = sys * control.tf([1.0], [lag_s, 1.0])
+    for num, den in drive_tf:
+        sys = sys * control.tf(list(num), list(den))
     ss = control.ss(sys)
     if abs(float(np.squeeze(ss.D))) > 0:
         raise ValueError("drive filter must be strictly proper")
@@ -303,8 +313,8 @@ def state_space_arrays(mats: PoseMatrices, *, pade_order: int = 6):
     ``M q'' + C q' + K q = B_c u' + B_k u``.
     """
     P = mats.n_poses
-    filt = [drive_filter_ss(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], pade_order)
-            for i in range(3)]
+    filt = [drive_filter_ss(mats.d0[i], mats.d1[i], mats.d2[i], mats.lag_s[i], mats.delay_s[i], pade_order,
+                            mats.drive_tf) for i in range(3)]
     nf = [f[0].shape[0] for f in filt]
     off = np.concatenate([[0], np.cumsum(nf)])
     n_f = int(off[-1])

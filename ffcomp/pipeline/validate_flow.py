@@ -6,14 +6,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 from ..measure.dataset import load_dataset
 from ..measure.frf_file import save_frf
 from ..model.effects import EFFECTS, load_library
 
 __all__ = ["ValidateRun", "FitRun", "profile_label", "load_data", "run_validate", "run_diagnose", "run_fit",
-           "run_virtual", "run_frf", "parse_effect_args", "effects_catalogue"]
+           "run_virtual", "run_frf", "parse_effect_args", "effects_catalogue", "base_name"]
 
 
 @dataclass(frozen=True)
@@ -41,9 +39,11 @@ class FitRun:
     profile: object
     noise_floor: float
     skipped: tuple = field(default=())
+    noise_note: str = ""
 
     def to_dict(self) -> dict:
-        return {**self.result.to_dict(), "noise_floor": self.noise_floor, "profile_name": self.profile.name}
+        return {**self.result.to_dict(), "noise_floor": self.noise_floor, "noise_note": self.noise_note,
+                "profile_name": self.profile.name}
 
 
 def load_data(path):
@@ -58,44 +58,57 @@ def profile_label(profile) -> str:
     return Path(profile.source).name if profile.source and not profile.source.startswith("<") else profile.name
 
 
-def run_validate(data, profile, compare=None) -> ValidateRun:
+def run_validate(data, profile, compare=None, *, noise_floor: float | None = None) -> ValidateRun:
     """Validate ``profile`` (and optionally the ``compare`` profile, as "before") against ``data``."""
-    from ..validate import compare as cmp
-    from ..validate import validate
+    from ..loop.validate import compare as cmp
+    from ..loop.validate import validate
 
     ms, skipped = load_data(data)
-    rep = validate(profile, ms, name=profile_label(profile))
+    rep = validate(profile, ms, name=profile_label(profile), noise_floor=noise_floor)
     if compare is None:
         return ValidateRun(rep, skipped=skipped)
-    before = validate(compare, ms, name=profile_label(compare))
+    before = validate(compare, ms, name=profile_label(compare), noise_floor=noise_floor)
     return ValidateRun(rep, before, cmp(before, rep), skipped)
 
 
-def run_diagnose(data, profile, *, candidates=None, folds: int = 4):
+def run_diagnose(data, profile, *, candidates=None, folds: int = 4, noise_floor: float | None = None,
+                 refit_base: bool | None = None, extra=()):
     """Diagnose ``profile`` against ``data``; returns ``(Diagnosis, skipped)``."""
-    from ..diagnose import diagnose
+    from ..loop.diagnose import diagnose
 
     ms, skipped = load_data(data)
-    return diagnose(profile, ms, candidates=candidates, folds=folds), skipped
+    return diagnose(profile, ms, candidates=candidates, folds=folds, noise_floor=noise_floor,
+                    refit_base=refit_base, extra=extra), skipped
 
 
-def run_fit(data, profile, add=(), *, set_values=(), free=(), refit: bool = True) -> FitRun:
-    """Fit ``add`` (and the profile's own effects unless ``refit`` is False); the new profile."""
-    from ..fit_effects import fit_effects
-    from ..measure.noise import noise_floor
+def base_name(name: str) -> str:
+    """A profile name without the suffixes the loop appends (``+ fitted ..``, ``(identified from ..)``)."""
+    for tail in (" + fitted", " (identified from"):
+        name = name.split(tail)[0]
+    return name.strip()
+
+
+def run_fit(data, profile, add=(), *, set_values=(), free=(), refit: bool = True, base: bool | None = None,
+            noise_floor: float | None = None) -> FitRun:
+    """Fit ``add`` (and the profile's own effects unless ``refit`` is False, and the base dynamics
+    when the data support it unless ``base`` is False); the new profile."""
+    from ..loop.fit import fit_effects, fitted_profile
+    from ..measure.noise import noise_floors
 
     ms, skipped = load_data(data)
-    res = fit_effects(profile, ms, add, refit=refit, set_values=set_values, free_extra=free)
+    res = fit_effects(profile, ms, add, refit=refit, set_values=set_values, free_extra=free, base=base)
     names = ", ".join(e["name"] for e in res.effects) or "no effects"
-    base = profile.name.split(" + fitted")[0]
-    new = profile.with_(effects=tuple(res.effects), name=f"{base} + fitted {names}", source=None)
-    nf = float(np.nanmean([noise_floor(m)[0] for m in ms]))
-    return FitRun(res, new, nf, skipped)
+    new = fitted_profile(profile, res).with_(name=f"{base_name(profile.name)} + fitted {names}", source=None)
+    from ..measure.predict import BatchPredictor
+    from ..model.lpv import LpvModel
+
+    nfs = noise_floors(ms, override=noise_floor, predictions=BatchPredictor(ms)(LpvModel.from_profile(new)))
+    return FitRun(res, new, nfs.mean, skipped, nfs.note)
 
 
 def parse_effect_args(args) -> list[dict]:
     """``NAME``, ``NAME=VALUE``, ``NAME:param=VALUE`` (repeatable) -> profile effect dicts (merged per name)."""
-    from ..fit_effects import parse_assignment
+    from ..loop.fit import parse_assignment
 
     out: dict[str, dict] = {}
     for a in args:
@@ -107,7 +120,8 @@ def parse_effect_args(args) -> list[dict]:
 
 
 def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0, freq_hz=None,
-                heights_mm=(30.0, 130.0), offset_mm=None, truth=None) -> list[Path]:
+                heights_mm=(30.0, 130.0), offset_mm=None, truth=None, averages: int | None = None,
+                averages_key: bool = True, all_carriages: bool = False) -> list[Path]:
     """Write virtual measurements of ``profile`` with hidden ``effects`` into ``out_dir``.
 
     ``truth``: optional path for the profile with the hidden effects (a TOML spoiler file).
@@ -117,8 +131,9 @@ def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0
     from ..profile import save_profile
 
     build_effects(effects)  # validate names and values before writing anything
-    plan = measurement_plan(profile, offset_mm=offset_mm, heights_mm=heights_mm)
-    ms = virtual_measurements(profile, effects, freq_hz=freq_hz, noise=noise, seed=seed, plan=plan)
+    plan = measurement_plan(profile, offset_mm=offset_mm, heights_mm=heights_mm, all_carriages=all_carriages)
+    ms = virtual_measurements(profile, effects, freq_hz=freq_hz, noise=noise, seed=seed, plan=plan,
+                              averages=averages, averages_key=averages_key)
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -127,7 +142,9 @@ def run_virtual(profile, effects, out_dir, *, noise: float = 0.02, seed: int = 0
         save_frf(m, p)
         paths.append(p)
     if truth:
-        hidden = profile.with_(effects=tuple(profile.effects) + tuple(effects),
+        from ..model.effects import with_plugin_refs
+
+        hidden = profile.with_(effects=with_plugin_refs(tuple(profile.effects) + tuple(effects)),
                                name=f"{profile.name} + hidden {', '.join(e['name'] for e in effects) or 'nothing'}")
         save_profile(hidden, truth)
     return paths

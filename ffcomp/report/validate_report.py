@@ -31,45 +31,57 @@ def _save(fig, path=None) -> bytes:
 
 
 class _BodeCanvas:
-    """One reusable two-panel figure whose lines are updated in place (creating figures and ticks
-    dominates the cost of a report)."""
+    """One reusable three-panel figure (magnitude, phase, relative residual versus frequency) whose
+    lines are updated in place (creating figures and ticks dominates the cost of a report).  Model
+    lines are drawn above the measured dots; the residual panel shows ``|H_pred - H_meas| / |H_meas|``
+    smoothed over 5 points against the noise floor, which a dB plot hides."""
 
     N_CURVES = 4
 
     def __init__(self):
         plt = _plt()
-        self.fig, (self.a1, self.a2) = plt.subplots(2, 1, sharex=True, figsize=(7.5, 5.2))
-        self.fig.subplots_adjust(left=0.11, right=0.98, top=0.94, bottom=0.1, hspace=0.08)
-        a1, a2 = self.a1, self.a2
+        self.fig, (self.a1, self.a2, self.a3) = plt.subplots(
+            3, 1, sharex=True, figsize=(7.5, 6.6), gridspec_kw={"height_ratios": [3, 2, 1.6]})
+        self.fig.subplots_adjust(left=0.11, right=0.98, top=0.95, bottom=0.08, hspace=0.08)
+        a1, a2, a3 = self.a1, self.a2, self.a3
         a1.set_xscale("log")
-        self.meas = (a1.plot([], [], ".", ms=3, color="k", label="measured")[0],
-                     a2.plot([], [], ".", ms=3, color="k")[0])
-        self.lines = [(a1.plot([], [], lw=1.4)[0], a2.plot([], [], lw=1.4)[0]) for _ in range(self.N_CURVES)]
+        self.meas = (a1.plot([], [], ".", ms=3, color="0.45", label="measured", zorder=2)[0],
+                     a2.plot([], [], ".", ms=3, color="0.45", zorder=2)[0])
+        self.lines = [(a1.plot([], [], lw=1.4, zorder=3)[0], a2.plot([], [], lw=1.4, zorder=3)[0],
+                       a3.plot([], [], lw=1.2, zorder=3)[0]) for _ in range(self.N_CURVES)]
+        for lm, _, lr in self.lines:
+            lr.set_color(lm.get_color())
+        self.noise_line = a3.axhline(np.nan, color="k", ls="--", lw=0.8, label="noise floor")
         a1.set_ylabel("magnitude (dB)")
         a2.set_ylabel("phase (deg)")
-        a2.set_xlabel("frequency (Hz)")
-        for a in (a1, a2):
+        a3.set_ylabel("rel. residual")
+        a3.set_yscale("log")
+        a3.set_xlabel("frequency (Hz)")
+        for a in (a1, a2, a3):
             a.grid(True, which="both", alpha=0.3)
 
-    def draw(self, meas, curves, title: str) -> bytes:
+    def draw(self, meas, curves, title: str, noise: float | None = None) -> bytes:
         f = meas.freq_hz
         ph_m = np.rad2deg(np.unwrap(np.angle(meas.H)))
         self.meas[0].set_data(f, 20 * np.log10(np.abs(meas.H)))
         self.meas[1].set_data(f, ph_m)
-        for k, (lm, lp) in enumerate(self.lines):
+        for k, (lm, lp, lr) in enumerate(self.lines):
             on = k < len(curves)
             lm.set_visible(on)
             lp.set_visible(on)
+            lr.set_visible(on)
             if on:
                 label, H = curves[k]
                 ph = np.rad2deg(np.unwrap(np.angle(H)))
                 lm.set_data(f, 20 * np.log10(np.abs(H)))
                 lp.set_data(f, ph + 360.0 * np.round((ph_m[0] - ph[0]) / 360.0))
+                lr.set_data(f, relative_residual(meas.H, H))
                 lm.set_label(label)
-        for a in (self.a1, self.a2):
+        self.noise_line.set_ydata([noise if noise and np.isfinite(noise) else np.nan] * 2)
+        for a in (self.a1, self.a2, self.a3):
             a.relim(visible_only=True)
             a.autoscale_view()
-        self.a1.legend(handles=[self.meas[0]] + [lm for lm, _ in self.lines[:len(curves)]], fontsize=8)
+        self.a1.legend(handles=[self.meas[0]] + [lm for lm, _, _ in self.lines[:len(curves)]], fontsize=8)
         self.a1.set_title(title, fontsize=10)
         buf = io.BytesIO()
         self.fig.savefig(buf, format="png", dpi=90)
@@ -79,10 +91,19 @@ class _BodeCanvas:
         _plt().close(self.fig)
 
 
-def bode_overlay_png(meas, curves, *, title: str = "", path=None, canvas: _BodeCanvas | None = None) -> bytes:
-    """Measured FRF (dots) against predictions ``curves = [(label, H), ...]``; returns PNG bytes."""
+def relative_residual(H_meas, H_pred, smooth: int = 5) -> np.ndarray:
+    """``|H_pred - H_meas| / |H_meas|`` as an RMS over ``smooth`` neighbouring points (same length)."""
+    e2 = np.abs(np.asarray(H_pred) - np.asarray(H_meas)) ** 2 / np.maximum(np.abs(H_meas), 1e-300) ** 2
+    k = max(1, min(int(smooth), len(e2)))
+    return np.sqrt(np.convolve(e2, np.ones(k) / k, mode="same"))
+
+
+def bode_overlay_png(meas, curves, *, title: str = "", path=None, canvas: _BodeCanvas | None = None,
+                     noise: float | None = None) -> bytes:
+    """Measured FRF (dots) against predictions ``curves = [(label, H), ...]`` with the relative
+    residual versus frequency (and the noise floor); returns PNG bytes."""
     cv = canvas or _BodeCanvas()
-    data = cv.draw(meas, list(curves)[:_BodeCanvas.N_CURVES], title or meas.label)
+    data = cv.draw(meas, list(curves)[:_BodeCanvas.N_CURVES], title or meas.label, noise)
     if canvas is None:
         cv.close()
     if path is not None:
@@ -168,7 +189,7 @@ def write_plots(directory, report, *, others=(), print_radius_mm=None) -> list[P
     for i, m in enumerate(report.measurements):
         p = d / (f"bode_{_slug(Path(m.path).stem)}.png" if m.path else f"bode_{i:02d}_{_slug(m.label)}.png")
         bode_overlay_png(m, _curves(report, others, i), title=f"{m.label}: residual {report.scores[i].residual:.3f}",
-                         path=p, canvas=cv)
+                         path=p, canvas=cv, noise=report.scores[i].noise)
         paths.append(p)
     cv.close()
     p = d / "error_map.png"
@@ -276,7 +297,7 @@ def html_report(path, report, *, others=(), comparison: dict | None = None, prin
     cv = _BodeCanvas()
     for i in idx:
         m = r.measurements[i]
-        parts.append(_img(bode_overlay_png(m, _curves(r, others, i), canvas=cv,
+        parts.append(_img(bode_overlay_png(m, _curves(r, others, i), canvas=cv, noise=r.scores[i].noise,
                                            title=f"{m.label}: residual {r.scores[i].residual:.3f}"), m.label))
     cv.close()
     parts.append("</div></body></html>")

@@ -63,6 +63,7 @@ class TowerScale(Effect):
     name = "tower_scale"
     summary = "per-tower carriage stiffness / mass / damping factors (e.g. unequal belt tension)"
     params = _params()
+    base_fixed = ("k_scale_A", "m_scale_A", "c_scale_A")  # with the base refitted: towers B, C relative to A
     fit = tuple(_params())  # all nine: each is identifiable from task-space sweeps at several poses
     grid = False  # start from 1 (no difference between towers)
     evidence_keys = ("peak_shift", "tower")
@@ -96,9 +97,12 @@ class TowerScale(Effect):
             if bits:
                 parts.append(f"tower {t}: {', '.join(bits)} (carriage mode {fr[j] - 1:+.1%})")
         if not parts:
-            return "all towers within 1 % of the profile"
+            parts.append("all towers within 1 % of the profile")
         j = int(np.argmax(np.abs(fr - 1)))
         odd = ""
         if abs(fr[j] - 1) > 0.02:
             odd = f"; tower {_T[j]}'s mode is {'low' if fr[j] < 1 else 'high'}"
-        return "; ".join(parts) + odd
+        # relative to tower A (what the data determine when the base is refitted too), always shown
+        rel = ", ".join(f"{w}_{t}/{w}_A = {self._vec(n)[i] / self._vec(n)[0]:.3f}"
+                        for w, n in (("k", "k"), ("m", "m"), ("c", "c")) for i, t in enumerate(_T) if i > 0)
+        return "; ".join(parts) + odd + f"; relative to tower A: {rel}"

@@ -21,11 +21,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .frf_metrics import complex_residual, r2_magnitude, r2_phase
-from .measure.noise import noise_floor
-from .measure.predict import BatchPredictor, check_measurements, detached
-from .model.lpv import LpvModel
-from .model.modes import modes
+from ..measure.noise import below_floor_note, noise_floors
+from ..measure.predict import BatchPredictor, check_measurements, detached
+from ..model.lpv import LpvModel
+from ..model.modes import modes
+from .metrics import complex_residual, r2_magnitude, r2_phase
 
 __all__ = ["BandScore", "MeasurementScore", "ValidationReport", "validate", "compare", "band_edges",
            "TABLE2_AXES"]
@@ -100,6 +100,14 @@ class ValidationReport:
     scores: tuple
     measurements: tuple = field(repr=False, default=())
     predictions: tuple = field(repr=False, default=())
+    #: where the floor came from (``coherence``, ``data``, ``given``) and why, if the estimates disagreed
+    noise_source: str = ""
+    noise_note: str = ""
+
+    @property
+    def below_floor(self) -> str:
+        """A warning when the mean residual sits well below the noise floor (else empty)."""
+        return below_floor_note(self.mean_residual, self.noise_floor, self.noise_source)
 
     @property
     def mean_residual(self) -> float:
@@ -182,7 +190,9 @@ class ValidationReport:
         return {
             "profile": self.profile,
             "summary": {"n_measurements": len(self.scores), "mean_residual": self.mean_residual,
-                        "noise_floor": self.noise_floor, "mean_r2_mag_linear": self.mean_r2_mag,
+                        "noise_floor": self.noise_floor, "noise_source": self.noise_source,
+                        "noise_note": self.noise_note, "below_floor": self.below_floor,
+                        "mean_r2_mag_linear": self.mean_r2_mag,
                         "mean_r2_mag_db": self.mean_r2_mag_db, "mean_r2_phase": self.mean_r2_phase},
             "worst": self.worst(),
             "table2": self.table2(),
@@ -252,7 +262,8 @@ def _resonances(model, measurements) -> list[tuple[float, np.ndarray]]:
     return out
 
 
-def validate(profile_or_model, measurements, *, name: str | None = None) -> ValidationReport:
+def validate(profile_or_model, measurements, *, name: str | None = None,
+             noise_floor: float | None = None) -> ValidationReport:
     """Score a profile (or :class:`LpvModel`) against measurements.
 
     Parameters
@@ -262,6 +273,8 @@ def validate(profile_or_model, measurements, *, name: str | None = None) -> Vali
     measurements : sequence of FrfMeasurement
     name : str, optional
         Label of the model in reports (default: the profile's name).
+    noise_floor : float, optional
+        Use this noise floor instead of the estimates (:func:`~ffcomp.measure.noise.noise_floors`).
 
     Returns
     -------
@@ -276,9 +289,9 @@ def validate(profile_or_model, measurements, *, name: str | None = None) -> Vali
     preds = BatchPredictor(measurements)(model)
     res = _resonances(model, measurements)
     scores = []
-    for m, Hp, (fd, fm) in zip(measurements, preds, res):
+    nfs = noise_floors(measurements, override=noise_floor, predictions=preds)
+    for m, Hp, (fd, fm), nf, src in zip(measurements, preds, res, nfs.values, nfs.sources):
         names, edges = band_edges(fd, fm)
-        nf, src = noise_floor(m)
         scores.append(MeasurementScore(
             label=m.label, path=m.path, kind=m.kind, input=m.input, output=m.output,
             position_mm=tuple(float(v) for v in m.position_mm), n_points=len(m.freq_hz),
@@ -286,7 +299,7 @@ def validate(profile_or_model, measurements, *, name: str | None = None) -> Vali
             r2_mag=r2_magnitude(m.H, Hp), r2_mag_db=r2_magnitude(m.H, Hp, db=True), r2_phase=r2_phase(m.H, Hp),
             residual=complex_residual(m.H, Hp, m.weights), noise=float(nf), noise_source=src,
             bands=_bands(m, Hp, names, edges)))
-    return ValidationReport(label, tuple(scores), tuple(measurements), tuple(preds))
+    return ValidationReport(label, tuple(scores), tuple(measurements), tuple(preds), nfs.source, nfs.note)
 
 
 def compare(before: ValidationReport, after: ValidationReport) -> dict:

@@ -11,7 +11,8 @@ returned as an :class:`Evidence` item with a key that effects list in ``evidence
 ``lateral_gain``  low-frequency gain of lateral responses off one while vertical stays one;
 ``peak_shift``  the measured resonance is shifted by the same fraction at every pose;
 ``height_shift``  the resonance shift changes sign/size with carriage height;
-``identification``  the identification sweeps at the centre deviate too.
+``identification``  the identification sweeps at the centre deviate too;
+``fixed_band``  one frequency band fails at every pose and in the carriage sweep (:func:`fixed_band`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import spearmanr
 
-from .kinematics import inverse
+from ..kinematics import inverse
 
-__all__ = ["Evidence", "Features", "features", "evidence"]
+__all__ = ["Evidence", "Features", "features", "evidence", "fixed_band"]
 
 
 @dataclass(frozen=True)
@@ -207,3 +208,65 @@ def evidence(ft: Features) -> list[Evidence]:
                 "the model is right where it was identified and wrong elsewhere")))
     out.sort(key=lambda e: -e.strength)
     return out
+
+
+def fixed_band(measurements, predictions, noise, *, per_octave: float = 3.0, min_share: float = 0.8,
+               min_excess: float = 5.0, min_contrast: float = 1.5) -> Evidence | None:
+    """A misfit concentrated in one frequency band, the same at every pose and in the carriage sweep.
+
+    Each sweep's relative complex residual is taken in 1/``per_octave``-octave bands on a common
+    grid.  The signature is found when the worst band of at least ``min_share`` of the sweeps is
+    one band (or its neighbour), not one of the two bands at either end of the grid (a misfit
+    growing towards an end is a trend: a delay, a lag), every carriage sweep among them, its
+    residual is ``min_excess`` times the noise and ``min_contrast`` times the residual outside it
+    (medians).  No effect of
+    the library does that: they all move with pose or act on the effector.  Returns None if absent.
+    """
+    from .metrics import complex_residual
+
+    ms = list(measurements)
+    if len(ms) < 3:
+        return None
+    f_lo = min(float(m.freq_hz[0]) for m in ms)
+    f_hi = max(float(m.freq_hz[-1]) for m in ms)
+    k0, k1 = int(np.floor(np.log2(f_lo) * per_octave)), int(np.ceil(np.log2(f_hi) * per_octave))
+    edges = 2.0 ** (np.arange(k0, k1 + 1) / per_octave)
+    nb = len(edges) - 1
+    bands = np.full((len(ms), nb), np.nan)
+    rest = np.full((len(ms), nb), np.nan)
+    for i, (m, Hp) in enumerate(zip(ms, predictions)):
+        for j in range(nb):
+            sel = (m.freq_hz >= edges[j]) & (m.freq_hz < edges[j + 1])
+            if sel.sum() < 3:
+                continue
+            bands[i, j] = complex_residual(m.H[sel], Hp[sel], m.weights[sel])
+            if (~sel).sum() >= 3:
+                rest[i, j] = complex_residual(m.H[~sel], Hp[~sel], m.weights[~sel])
+    ok = np.isfinite(bands).any(axis=1)
+    worst = np.where(ok, np.argmax(np.where(np.isfinite(bands), bands, -np.inf), axis=1), -1)
+    vals, counts = np.unique(worst[worst >= 0], return_counts=True)
+    if not len(vals):
+        return None
+    j = int(vals[np.argmax(counts)])
+    if j < 2 or j > nb - 3:
+        return None  # at an end of the band: a trend (a delay, a lag), not a resonance
+    hit = np.abs(worst - j) <= 1
+    share = float(hit.mean())
+    carriage = np.array([m.kind == "carriage" for m in ms])
+    nu = np.maximum(np.asarray(noise, float), 1e-12)
+    peak = bands[np.arange(len(ms)), np.clip(worst, 0, nb - 1)]
+    exc = float(np.median((peak / nu)[hit]))
+    con = float(np.nanmedian((peak / rest[np.arange(len(ms)), np.clip(worst, 0, nb - 1)])[hit]))
+    if (share < min_share or exc < min_excess or con < min_contrast
+            or (carriage.any() and not hit[carriage].all())):
+        return None
+    poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in ms}
+    hit_poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m, h in zip(ms, hit) if h}
+    lo, hi = float(edges[j]), float(edges[j + 1])
+    car = (" and in the carriage sweep (effector detached) too" if carriage.any() else "")
+    text = (f"a misfit at a fixed frequency, {lo:.0f}-{hi:.0f} Hz, is the worst band of {int(hit.sum())} of {len(ms)} "
+            f"sweeps, at {len(hit_poses)} of {len(poses)} poses{car} ({exc:.0f}x the noise there, {con:.1f}x the "
+            "residual elsewhere): a resonance that does not move with the pose, which no effect of the library "
+            "produces (a compliant motor mount, a frame or pulley mode); describe it as an effect plug-in "
+            "(docs/effects_example_motor_mount.py) and fit it with `ffcomp fit --plugin FILE --add NAME`")
+    return Evidence("fixed_band", min(1.0, share), text)

@@ -2,7 +2,7 @@
 
 For every effect in the library that the profile does not have yet, its parameters (together with
 those of the profile's own effects, which were fitted without it) are fitted to the measurements
-(:mod:`ffcomp.fit_effects`, coherence-weighted complex least squares); refitting the profile's own
+(:mod:`ffcomp.loop.fit`, coherence-weighted complex least squares); refitting the profile's own
 effects alone is one more candidate.  Each is scored by cross-validation **by pose**: the poses
 are split into ``k`` folds; each fold's measurements are predicted with parameters fitted on the
 other folds only.  An effect that merely bends the model towards the noise gains nothing on poses
@@ -17,13 +17,16 @@ noise floor ``nu`` (:mod:`ffcomp.measure.noise`):
   is significant when it removes at least ``min_removed`` of the excess and at least
   ``min_gain * mean(nu^2)`` in absolute terms;
 * the status is ``ok`` (nothing significant to explain), ``explained`` (the best candidate removes
-  at least ``explain_fraction`` of the excess), ``partial`` (it is significant but leaves more:
-  fit it and diagnose again, or something outside the library is missing) or ``unexplained``.
+  at least ``explain_fraction`` of the excess and leaves less than twice the noise, RMS),
+  ``partial`` (it is significant but leaves more: fit it and diagnose again, or something outside
+  the library is missing) or ``unexplained`` (no candidate is significant, or one frequency band
+  fails at every pose and in the carriage sweep and the best candidate leaves more than twice the
+  noise: :func:`~ffcomp.loop.evidence.fixed_band`).
 
 Candidates are ranked by held-out residual, significant ones first; when the profile already has
 effects, a new effect is significant only if it also beats refitting those effects alone by the
 same margins (parsimony).  The evidence in words comes from the fitted values
-(``Effect.explain``) and from the residual's signatures (:mod:`ffcomp.diagnose_evidence`).
+(``Effect.explain``) and from the residual's signatures (:mod:`ffcomp.loop.evidence`).
 """
 
 from __future__ import annotations
@@ -32,12 +35,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .diagnose_evidence import evidence, features
-from .fit_effects import Objective, _model_with, fit_free
-from .measure.noise import noise_floor
-from .measure.predict import BatchPredictor, check_measurements
-from .model.effects import EFFECTS, load_library
-from .model.lpv import LpvModel
+from ..measure.noise import noise_floors
+from ..measure.predict import BatchPredictor, check_measurements
+from ..model.effects import EFFECTS, load_library
+from ..model.lpv import LpvModel
+from .base_fit import BASE, BASE_KEYS, base_spec, explain_base
+from .evidence import evidence, features, fixed_band
+from .fit import Objective, _model_with, base_supported, effect_specs, fit_free
+from .geometry_fit import GEOM, geometry_spec, profile_geometry_change
 
 __all__ = ["Candidate", "Diagnosis", "diagnose", "pose_folds"]
 
@@ -62,14 +67,21 @@ class Candidate:
     explanation: str
     evidence: tuple
     effects: tuple = ()
+    #: ``"effect"``, or ``"geometry"`` (a profile value is wrong: ``set_value`` says which)
+    kind: str = "effect"
+    set_value: str = ""
 
     @property
     def label(self) -> str:
+        if self.kind == "geometry":
+            return f"geometry: {self.effect.replace('_', ' ')}"
         return f"refit {self.effect}" if self.refit else self.effect
 
     @property
     def command(self) -> str:
-        """The ``ffcomp fit`` call that applies this candidate."""
+        """The command that applies this candidate (``ffcomp fit``, or ``ffcomp profile set`` for geometry)."""
+        if self.kind == "geometry":
+            return f"ffcomp profile set P.toml {self.set_value}"
         add = "" if self.refit else f" --add {self.effect}"
         return f"ffcomp fit DATA --profile P.toml{add} -o P2.toml"
 
@@ -83,7 +95,8 @@ class Candidate:
                 "mean_residual_heldout": self.mean_heldout, "mean_residual_insample": float(np.mean(self.insample)),
                 "removed_fraction": self.removed, "gain_over_noise": self.gain, "significant": self.significant,
                 "explanation": self.explanation, "evidence": list(self.evidence),
-                "effects": [dict(e) for e in self.effects], "command": self.command,
+                "effects": [dict(e) for e in self.effects], "command": self.command, "kind": self.kind,
+                "set_value": self.set_value,
                 "residual_heldout": self.heldout.tolist()}
 
 
@@ -103,6 +116,7 @@ class Diagnosis:
     evidence: tuple
     verdict: str
     status: str = "ok"
+    noise_note: str = ""
 
     @property
     def noise_floor(self) -> float:
@@ -121,6 +135,7 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {"profile": self.profile, "n_measurements": len(self.labels), "n_poses": self.n_poses,
                 "folds": self.folds, "noise_floor": self.noise_floor, "noise_source": self.noise_source,
+                "noise_note": self.noise_note,
                 "mean_residual_base": float(np.mean(self.base_residual)),
                 "base_significant": self.base_significant, "status": self.status, "verdict": self.verdict,
                 "evidence": [e.to_dict() for e in self.evidence],
@@ -139,16 +154,13 @@ def pose_folds(measurements, k: int) -> list[np.ndarray]:
 
 
 def _specs_of(profile) -> list[dict]:
-    out = []
-    for e in profile.effects:
-        cls = EFFECTS[e["name"]]
-        out.append({"name": cls.name, **{k: float(e.get(k, p.default)) for k, p in cls.params.items()}})
-    return out
+    return effect_specs(profile)
 
 
 def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_threshold: float = 0.3,
              min_removed: float = 0.25, min_gain: float = 0.3, explain_fraction: float = 0.8,
-             min_floor: float = 0.003) -> Diagnosis:
+             min_floor: float = 0.003, noise_floor: float | None = None,
+             refit_base: bool | None = None, geometry: bool = True, extra=()) -> Diagnosis:
     """Rank candidate effects by the error they remove on held-out poses.
 
     Parameters
@@ -167,6 +179,16 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     min_floor : float
         Smallest noise floor used for significance (relative): noise-free data (a simulation,
         coherence 1) would otherwise make any linearisation or rounding error "significant".
+    noise_floor : float, optional
+        Use this noise floor instead of the estimates (``--noise-floor``).
+    extra : sequence of str
+        Plug-in effects to try as well (loaded with :func:`~ffcomp.model.effects.load_plugin`).
+    geometry : bool
+        Also try the geometry as the cause (delta radius, arm length, tower-angle frame; only with
+        the default candidates), :mod:`ffcomp.loop.geometry_fit`.
+    refit_base : bool, optional
+        Refit the base dynamics alongside every candidate (and alone, as the first candidate);
+        default: when the data have sweeps at 3 poses or more (:func:`~ffcomp.loop.fit.base_supported`).
 
     Returns
     -------
@@ -177,14 +199,15 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
     model0 = LpvModel.from_profile(profile, effects=False)
     check_measurements(model0, measurements)
     base_specs = _specs_of(profile)
+    use_base = base_supported(measurements) if refit_base is None else bool(refit_base)
+    if use_base:
+        base_specs.insert(0, base_spec(model0))
     obj = Objective(measurements)
     base_model = _model_with(model0, base_specs)
     preds = obj.predictor(base_model)
     r0 = obj.per_measurement(base_model)
-    nf = [noise_floor(m) for m in measurements]
-    nu = np.array([v for v, _ in nf])
-    src = "coherence" if all(s == "coherence" for _, s in nf) else (
-        "data" if all(s == "data" for _, s in nf) else "coherence and data")
+    nfs = noise_floors(measurements, override=noise_floor, predictions=preds)
+    nu, src = nfs.values, nfs.source
     nu = np.where(np.isfinite(nu), nu, np.nanmedian(nu) if np.any(np.isfinite(nu)) else 0.0)
     nu = np.maximum(nu, min_floor)
     nu2 = float(np.mean(nu**2))
@@ -200,25 +223,40 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
             tr = [measurements[i] for i in train]
             te = [measurements[i] for i in test]
             fold_objs.append((test, Objective(tr, BatchPredictor(tr)), Objective(te, BatchPredictor(te))))
-    names = list(candidates) if candidates else sorted(EFFECTS)
+    # default: the library, the plug-ins the profile names and those asked for (``extra``); a plug-in
+    # loaded for another purpose is not a candidate unless named
+    own = {e["name"] for e in profile.effects}
+    names = list(candidates) if candidates else sorted(
+        n for n, c in EFFECTS.items() if c.plugin is None or n in own or n in set(extra))
     for name in names:
         if name not in EFFECTS:
             raise ValueError(f"unknown effect {name!r} (known: {', '.join(sorted(EFFECTS))})")
-    present = [s["name"] for s in base_specs]
+    present = [s["name"] for s in base_specs if s["name"] != BASE]
     # the profile's own effects were fitted without the missing one: refit them alongside each candidate
-    old_free = [(i, p) for i, s in enumerate(base_specs) for p in EFFECTS[s["name"]].fit_params()]
+    old_free = [(i, p) for i, s in enumerate(base_specs)
+                for p in (BASE_KEYS if s["name"] == BASE else EFFECTS[s["name"]].fit_params())]
     jobs = []
     for name in names:
         if name in present:
             continue
         cls = EFFECTS[name]
         specs = base_specs + [{"name": name, **{p: v.default for p, v in cls.params.items()}}]
-        new = [(len(base_specs), p) for p in cls.fit_params()]
+        new = [(len(base_specs), p) for p in cls.fit_params() if not (use_base and p in cls.base_fixed)]
         jobs.append((name, False, specs, old_free + new, [False] * len(old_free) + [cls.grid] * len(new)))
-    if old_free and (candidates is None or any(n in present for n in names)):
-        # first: a new effect must beat merely refitting the profile's own effects (parsimony)
-        jobs.insert(0, ("+".join(present), True, base_specs, old_free, [False] * len(old_free)))
+    if geometry and candidates is None:
+        g0 = geometry_spec(model0)
+        for key in ("delta_radius_mm", "arm_length_mm"):
+            specs = base_specs + [dict(g0)]
+            jobs.append((key[:-3], False, specs, old_free + [(len(base_specs), key)],
+                         [False] * (len(old_free) + 1)))
+    if old_free and (candidates is None or use_base or any(n in present for n in names)):
+        # first: a new effect must beat merely refitting the base and the profile's own effects (parsimony)
+        own = "+".join((["base dynamics"] if use_base else []) + present)
+        jobs.insert(0, (own, True, base_specs, old_free, [False] * len(old_free)))
     ev = evidence(features(base_model, measurements, preds, r0, nu))
+    fb = fixed_band(measurements, preds, nu) if base_sig else None
+    if fb is not None:
+        ev = [fb] + list(ev)
     cands = []
     ref2 = float(np.mean(r0**2))  # reference of the new-effect candidates: base, or the refit if better
     for name, refit, specs, free, fresh in jobs:
@@ -241,28 +279,78 @@ def diagnose(profile, measurements, *, candidates=None, folds: int = 4, base_thr
             sig = sig and inc >= min_gain * nu2 and inc >= min_removed * max(ref2 - nu2, 0.0)
         if refit:
             ref2 = min(ref2, float(np.mean(held**2)))
-        mine = list(full.effects) if refit else [full.effects[-1]]
+        if full.effects[-1]["name"] == GEOM and not refit:
+            key = name + "_mm"
+            setv, words = profile_geometry_change(profile, key, full.effects[-1][key])
+            cands.append(Candidate(name, False, {key: full.effects[-1][key]}, tuple(full.estimates), held,
+                                   full.residual_after, float(removed), gain / nu2 if nu2 else float("inf"), sig,
+                                   words, (), tuple(full.effects), "geometry", setv))
+            continue
+        mine = [e for e in full.effects if e["name"] != BASE] if refit else [full.effects[-1]]
         keys = {k for e in mine for k in getattr(EFFECTS[e["name"]], "evidence_keys", ())}
-        expl = "; ".join(EFFECTS[e["name"]](**{p: v for p, v in e.items() if p != "name"}).explain(model0)
+        fitted0 = _model_with(model0, [e for e in full.effects if e["name"] == BASE])
+        expl = "; ".join(EFFECTS[e["name"]](**{p: v for p, v in e.items() if p != "name"}).explain(fitted0)
                          for e in mine)
+        if refit and use_base:
+            expl = "; ".join(x for x in (explain_base(base_specs[0], full.effects[0]), expl) if x)
         params = {p: v for p, v in full.effects[-1].items() if p != "name"} if not refit else {
             f"{e['name']}:{p}": v for e in full.effects for p, v in e.items() if p != "name"}
         cands.append(Candidate(name, refit, params, tuple(full.estimates), held, full.residual_after,
                                float(removed), gain / nu2 if nu2 else float("inf"), sig, expl,
                                tuple(e.text for e in ev if e.key in keys and e.strength >= 0.5), tuple(full.effects)))
+    if geometry and candidates is None:
+        rot = _frame_candidate(profile, model0, base_specs, obj, r0, e0, nu2, base_sig, min_removed, min_gain)
+        if rot is not None and rot.gain >= min_gain:  # a rotation that does not help is no candidate
+            cands.append(rot)
     cands.sort(key=lambda c: (not c.significant, c.mean_heldout))
     for j, c in enumerate(cands[:2]):
-        if c.significant and not c.refit:
+        if c.significant and not c.refit and c.kind == "effect":
             txt = _pose_consistency(model0, [dict(e) for e in c.effects], len(c.effects) - 1, measurements, c)
             if txt:
                 cands[j] = replace(c, evidence=(txt,) + c.evidence)
     sig = [c for c in cands if c.significant]
     status = ("ok" if not base_sig else "unexplained" if not sig else
               "explained" if sig[0].removed >= explain_fraction else "partial")
-    verdict = _verdict(r0, nu, status, cands, cv)
+    if status == "explained" and np.mean(sig[0].heldout**2) > 4.0 * nu2:
+        status = "partial"  # most of a large error, but what is left is still twice the noise or more
+    if fb is not None and status == "partial" and np.mean(sig[0].heldout**2) > 4.0 * nu2:
+        status = "unexplained"  # a fixed-frequency misfit the best candidate leaves: outside the library
+    verdict = _verdict(r0, nu, status, cands, cv, fb)
     labels = tuple(m.path or m.label for m in measurements)
     return Diagnosis(profile.name, labels, n_poses, len(fold_idx) if cv else 0, nu, src, r0, base_sig,
-                     tuple(cands), tuple(ev), verdict, status)
+                     tuple(cands), tuple(ev), verdict, status, nfs.note)
+
+
+def _frame_candidate(profile, model0, base_specs, obj, r0, e0, nu2, base_sig, min_removed, min_gain):
+    """The tower angles rotated by multiples of 30 deg (e.g. the firmware frame on paper-frame data),
+    scored without fitting (nothing is fitted, so in-sample is held-out)."""
+    g0 = geometry_spec(model0)
+    tried = []
+    for rot in range(30, 360, 30):
+        spec = dict(g0, rotation_deg=float(rot if rot <= 180 else rot - 360))
+        try:
+            r = obj.per_measurement(_model_with(model0, base_specs + [spec]))
+        except (ValueError, np.linalg.LinAlgError):
+            continue  # a pose out of reach in the rotated frame
+        tried.append((spec, r))
+    if not tried:
+        return None
+    # rotations 120 deg apart only relabel the towers: among the (near) ties prefer a named frame
+    low = min(float(np.mean(r**2)) for _, r in tried)
+    ang0 = np.asarray(profile.geometry.tower_angles_deg, float)
+
+    def pref(item):
+        new = (ang0 + item[0]["rotation_deg"]) % 360.0
+        named = 0 if np.allclose(new, [0, 120, 240]) else 1 if np.allclose(new, [210, 330, 90]) else 2
+        return (named, abs(item[0]["rotation_deg"]))
+
+    spec, r = min((t for t in tried if np.mean(t[1] ** 2) <= 1.02 * low), key=pref)
+    gain = float(np.mean(r0**2) - np.mean(r**2))
+    removed = min(gain / e0, 1.0) if e0 > 0 else 0.0
+    sig = bool(base_sig and removed >= min_removed and gain >= min_gain * nu2)
+    setv, words = profile_geometry_change(profile, "rotation_deg", spec["rotation_deg"])
+    return Candidate("tower_frame", False, {"rotation_deg": spec["rotation_deg"]}, (), r, r, float(removed),
+                     gain / nu2 if nu2 else float("inf"), sig, words, (), tuple(base_specs) + (spec,), "geometry", setv)
 
 
 def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:
@@ -309,7 +397,7 @@ def _pose_consistency(model0, specs, k, measurements, cand) -> str | None:
     return f"fitted pose by pose ({len(groups)} poses; median, quartiles): " + "; ".join(parts)
 
 
-def _verdict(r0, nu, status, cands, cv) -> str:
+def _verdict(r0, nu, status, cands, cv, fb=None) -> str:
     m0, mn = float(np.mean(r0)), float(np.mean(nu))
     how = "on held-out poses" if cv else "in sample (too few poses to hold any out)"
     if status == "ok":
@@ -317,10 +405,12 @@ def _verdict(r0, nu, status, cands, cv) -> str:
                 "nothing significant to diagnose.")
     if status == "unexplained":
         best = cands[0] if cands else None
-        tail = (f" The best candidate, {best.label}, removes only {max(best.removed, 0):.0%} of the error above the "
-                f"noise {how}.") if best else ""
+        tail = (f" The best candidate, {best.label}, removes {max(best.removed, 0):.0%} of the error above the "
+                f"noise {how} and leaves {best.mean_heldout:.4f}, {best.mean_heldout / mn:.1f}x the noise."
+                if best else "")
+        band = f" The evidence points at it: {fb.text}." if fb is not None else ""
         return (f"The model misses something (mean residual {m0:.4f}, noise {mn:.4f}) that no candidate effect "
-                f"explains.{tail} Look at where it fails (ffcomp validate) and the evidence below.")
+                f"explains.{band}{tail} Look at where it fails (ffcomp validate) and the evidence below.")
     sig = [c for c in cands if c.significant]
     c = sig[0]
     left = float(np.mean(c.heldout))
@@ -335,6 +425,18 @@ def _verdict(r0, nu, status, cands, cv) -> str:
                 f"again (a second effect?), or something outside the library is missing.{alt}{fit}")
     more = (" Some error remains above the noise: after fitting it, diagnose again."
             if np.mean(c.heldout**2) > 1.5**2 * np.mean(nu**2) else "")
+    if c.kind == "geometry":
+        twins = [o for o in sig[1:] if o.kind == "geometry" and np.mean(o.heldout**2) <= 1.1 * np.mean(c.heldout**2)]
+        also = "".join(f" Nearly as good: {o.explanation} (at these poses the two are hard to tell apart; sweeps "
+                       "at more heights and radii separate them)." for o in twins)
+        return (f"Geometry, not a physical effect: {c.explanation}.{also} Correcting it removes {c.removed:.0%} of the "
+                f"error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise {mn:.4f}). Fix the "
+                f"profile: {c.command}, then diagnose again.{more}")
+    if c.refit and c.effect == "base dynamics":
+        return (f"No physical effect is missing: the two-sweep identification's base dynamics are off "
+                f"({c.explanation.removeprefix('base dynamics: ')}). Refitting them from all the sweeps removes "
+                f"{c.removed:.0%} of the error above the noise {how} (mean residual {m0:.4f} -> {left:.4f}, noise "
+                f"{mn:.4f}).{more}{fit}")
     if c.refit:
         return (f"Nothing new is missing: the profile's own effects ({c.effect}) have the wrong parameters. "
                 f"Refitting them removes {c.removed:.0%} of the error above the noise {how} (mean residual "

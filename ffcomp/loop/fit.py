@@ -8,7 +8,7 @@ minimises the coherence-weighted relative complex error, every measurement count
 
 (``w`` = coherence, or 1).  That keeps the information above the resonances, where the magnitude
 is small but a lag or a delay shows most clearly.  Reports and the held-out scores of
-:mod:`ffcomp.diagnose` use the normalised complex residual of ``ffcomp validate``
+:mod:`ffcomp.loop.diagnose` use the normalised complex residual of ``ffcomp validate``
 (:meth:`Objective.per_measurement`).  Parameters are scaled to their search range (``Param.search``),
 bounded by it, started from the best point of a small grid (plus the defaults or the current
 values) and refined with :func:`scipy.optimize.least_squares` (trust-region reflective).
@@ -18,18 +18,20 @@ Standard errors come from the Jacobian at the optimum (``s^2 (J^T J)^-1``).
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from .errors import SolverError
-from .measure.predict import BatchPredictor, check_measurements
-from .model.effects import EFFECTS, load_library
-from .model.lpv import LpvModel
+from ..errors import SolverError
+from ..measure.predict import BatchPredictor, check_measurements
+from ..model.effects import EFFECTS, load_library
+from ..model.lpv import LpvModel
+from .base_fit import BASE, BASE_KEYS, apply_base, base_spec, base_table
+from .geometry_fit import GEOM, apply_geometry, geometry_table
 
 __all__ = ["ParamEstimate", "FitResult", "Objective", "fit_effects", "fit_free", "residuals_of",
-           "parse_assignment"]
+           "parse_assignment", "base_supported", "effect_specs", "fitted_profile"]
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,9 @@ class FitResult:
     message: str
     nfev: int
     labels: tuple = field(default=())
+    #: the refitted base dynamics (``{"name": "base", "m": ..}``, tower means) and their start, or None
+    base: dict | None = None
+    base_start: dict | None = None
 
     @property
     def values(self) -> np.ndarray:
@@ -98,6 +103,8 @@ class FitResult:
             "success": self.success,
             "message": self.message,
             "nfev": self.nfev,
+            "base": self.base,
+            "base_start": self.base_start,
         }
 
 
@@ -158,8 +165,24 @@ def _model_with(model0: LpvModel, specs) -> LpvModel:
     effs = []
     for s in specs:
         s = dict(s)
-        effs.append(EFFECTS[s.pop("name")](**s))
+        name = s.pop("name")
+        if name == BASE:
+            model0 = apply_base(model0, s)
+            continue
+        if name == GEOM:
+            model0 = apply_geometry(model0, s)
+            continue
+        effs.append(EFFECTS[name](**s))
     return model0.with_effects(effs)
+
+
+def _param(spec: dict, p: str, tables: dict | None = None):
+    """The :class:`Param` of parameter ``p`` of the entry ``spec`` (an effect or the base)."""
+    if spec["name"] == BASE:
+        return (tables or {}).get(BASE, base_table(spec))[p]
+    if spec["name"] == GEOM:
+        return (tables or {}).get(GEOM, geometry_table(spec))[p]
+    return EFFECTS[spec["name"]].params[p]
 
 
 def _grid(free, specs, fresh, n_max: int = 64, seed: int = 0) -> np.ndarray:
@@ -172,18 +195,20 @@ def _grid(free, specs, fresh, n_max: int = 64, seed: int = 0) -> np.ndarray:
             axes.append(sorted({float(np.clip(cur, 0, 1)), *pts}))
         else:
             axes.append([float(np.clip(cur, 0, 1))])
-    pts = np.array(list(itertools.product(*axes)))
-    if len(pts) > n_max:
-        rng = np.random.default_rng(seed)
-        keep = rng.choice(len(pts), n_max - 1, replace=False)
-        cur = np.array([a[0] if len(a) == 1 else float(np.clip((float(specs[k][p]) - lo) / (hi - lo), 0, 1))
-                        for a, (k, p, lo, hi) in zip(axes, free)])
-        pts = np.vstack([cur, pts[keep]])
-    return pts
+    size = int(np.prod([len(a) for a in axes], dtype=float))
+    if size <= n_max:
+        return np.array(list(itertools.product(*axes)))
+    # too many combinations to list: the current point plus random grid points
+    rng = np.random.default_rng(seed)
+    cur = np.array([a[0] if len(a) == 1 else float(np.clip((float(specs[k][p]) - lo) / (hi - lo), 0, 1))
+                    for a, (k, p, lo, hi) in zip(axes, free)])
+    picks = np.array([[a[rng.integers(len(a))] for a in axes] for _ in range(n_max - 1)])
+    return np.vstack([cur, picks])
 
 
 def fit_free(model0: LpvModel, specs, free, measurements, *, fresh=None, x0=None, objective=None,
-             max_nfev: int | None = None, n_starts: int = 1, before=None, tol: float = 1e-10) -> FitResult:
+             max_nfev: int | None = None, n_starts: int = 1, before=None, tol: float = 1e-10,
+             tables: dict | None = None) -> FitResult:
     """Fit the ``free`` parameters of the effect list ``specs`` on top of ``model0``.
 
     Parameters
@@ -202,14 +227,23 @@ def fit_free(model0: LpvModel, specs, free, measurements, *, fresh=None, x0=None
         The effect list the "before" residuals refer to (default: ``specs`` as given).
     tol : float
         ``xtol`` and ``ftol`` of :func:`scipy.optimize.least_squares` (parameters scaled to 0..1).
+    tables : dict, optional
+        ``{"base": {param: Param}}``: the bounds of the base dynamics entry (default: around the
+        entry's own values, :func:`~ffcomp.loop.base_fit.base_table`).
     """
     load_library()
     specs = [dict(s) for s in specs]
+    tables = dict(tables or {})
+    for s in specs:
+        if s["name"] == BASE and BASE not in tables:
+            tables[BASE] = base_table(s)
+        if s["name"] == GEOM and GEOM not in tables:
+            tables[GEOM] = geometry_table(s)
     model0 = model0.with_effects(())
     obj = objective or Objective(measurements)
     bounds = []
     for k, p in free:
-        lo, hi = EFFECTS[specs[k]["name"]].params[p].fit_range
+        lo, hi = _param(specs[k], p, tables).fit_range
         if not (np.isfinite(lo) and np.isfinite(hi) and hi > lo):
             raise SolverError(f"parameter {specs[k]['name']}:{p} has no finite fit range")
         bounds.append((k, p, float(lo), float(hi)))
@@ -265,7 +299,7 @@ def fit_free(model0: LpvModel, specs, free, measurements, *, fresh=None, x0=None
     final = specs_at(x)
     after = obj.per_measurement(_model_with(model0, final))
     est = tuple(
-        ParamEstimate(final[k]["name"], p, float(v), float(e), EFFECTS[final[k]["name"]].params[p].unit,
+        ParamEstimate(final[k]["name"], p, float(v), float(e), _param(final[k], p, tables).unit,
                       float(specs[k][p]), lo, hi, bool(xi < 1e-4 or xi > 1 - 1e-4))
         for (k, p, lo, hi), v, e, xi in zip(bounds, physical(x), se, x))
     return FitResult(tuple(final), est, before, after, bool(best.success), str(best.message), nfev, _labels(obj))
@@ -292,8 +326,30 @@ def _labels(obj: Objective) -> tuple:
     return tuple((m.path or m.label) for m in obj.measurements)
 
 
+def base_supported(measurements, *, min_poses: int = 3) -> bool:
+    """Whether a data set can carry a refit of the base dynamics: sweeps at ``min_poses`` poses or more."""
+    poses = {tuple(np.round(np.asarray(m.position_mm, float), 0)) for m in measurements}
+    return len(poses) >= min_poses and len(list(measurements)) >= 2 * min_poses
+
+
+def effect_specs(profile) -> list[dict]:
+    """The profile's ``[[effects]]`` with every parameter filled in (defaults where absent)."""
+    from pathlib import Path
+
+    from ..model.effects import build_effects
+
+    src = profile.source
+    build_effects(profile.effects, Path(src).parent if src and not str(src).startswith("<") else None)  # plug-ins
+    specs = []
+    for e in profile.effects:
+        e = dict(e)
+        cls = EFFECTS[e["name"]]
+        specs.append({"name": cls.name, **{k: float(e.get(k, p.default)) for k, p in cls.params.items()}})
+    return specs
+
+
 def fit_effects(profile, measurements, add=(), *, refit: bool = True, set_values=(), free_extra=(),
-                n_starts: int = 1) -> FitResult:
+                n_starts: int = 1, base: bool | None = None) -> FitResult:
     """Add effects to a profile and fit their parameters (and, with ``refit``, those already there).
 
     Parameters
@@ -308,17 +364,26 @@ def fit_effects(profile, measurements, add=(), *, refit: bool = True, set_values
         Fixed values to set before fitting (e.g. a measured ``belt_span:loop_mm``).
     free_extra : sequence of (name, param)
         Extra parameters to fit beyond each effect's defaults.
+    base : bool, optional
+        Refit the base dynamics (m, c, b, k, b_nt, d0, d1, d2) jointly with the effects
+        (:mod:`ffcomp.loop.base_fit`); default: when the data have sweeps at 3 poses or more.
+        Parameters an effect shares with the base (``Effect.base_fixed``, e.g. tower A's scale
+        factors) are then held at their values.
 
     Returns
     -------
-    FitResult ; ``profile.with_(effects=result.effects)`` is the fitted profile.
+    FitResult ; :attr:`FitResult.effects` holds the effects, :attr:`FitResult.base` the refitted
+    base (or None); :func:`fitted_profile` applies both.
     """
     load_library()
-    specs = []
-    for e in profile.effects:
-        e = dict(e)
-        cls = EFFECTS[e["name"]]
-        specs.append({"name": cls.name, **{k: float(e.get(k, p.default)) for k, p in cls.params.items()}})
+    measurements = list(measurements)
+    specs = effect_specs(profile)
+    model0 = LpvModel.from_profile(profile, effects=False)
+    check_measurements(model0, measurements)
+    use_base = base_supported(measurements) if base is None else bool(base)
+    off = 1 if use_base else 0
+    if use_base:
+        specs.insert(0, base_spec(model0))
     n_old = len(specs)
     for name in add:
         if name not in EFFECTS:
@@ -332,16 +397,32 @@ def fit_effects(profile, measurements, add=(), *, refit: bool = True, set_values
             raise ValueError(f"--set {name}:{param}: effect {name!r} is neither in the profile nor added")
         hits[0][param] = float(value)
     free, fresh = [], []
-    for k, s in enumerate(specs):
+    if use_base:
+        free += [(0, p) for p in BASE_KEYS]
+        fresh += [False] * len(BASE_KEYS)
+    for k, s in enumerate(specs[off:], off):
         if k < n_old and not refit:
             continue
-        names = list(EFFECTS[s["name"]].fit_params())
+        cls = EFFECTS[s["name"]]
+        names = list(cls.fit_params())
         names += [p for n, p in free_extra if n == s["name"] and p not in names]
         fixed = {p for n, p, _ in set_values if n == s["name"]}
+        if use_base:
+            fixed |= set(getattr(cls, "base_fixed", ()))
         for p in names:
             if p not in fixed:
                 free.append((k, p))
-                fresh.append(k >= n_old and EFFECTS[s["name"]].grid)
-    model0 = LpvModel.from_profile(profile, effects=False)
-    check_measurements(model0, measurements)
-    return fit_free(model0, specs, free, measurements, fresh=fresh, n_starts=n_starts, before=specs[:n_old])
+                fresh.append(k >= n_old and cls.grid)
+    res = fit_free(model0, specs, free, measurements, fresh=fresh, n_starts=n_starts, before=specs[:n_old])
+    if not use_base:
+        return res
+    return replace(res, effects=tuple(res.effects[1:]), base=dict(res.effects[0]), base_start=dict(specs[0]))
+
+
+def fitted_profile(profile, result: FitResult):
+    """``profile`` with the fit's effects and, if refitted, base dynamics."""
+    from ..model.effects import with_plugin_refs
+    from .base_fit import apply_base_to_profile
+
+    out = profile.with_(effects=with_plugin_refs(result.effects))
+    return apply_base_to_profile(out, result.base) if result.base is not None else out
