@@ -22,19 +22,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..linalg3 import matvec3, rmatvec3
-from ..model.lpv import LpvModel, PoseMatrices
+from ..model.lpv import LpvModel, PoseMatrices, drive_filter_ss
 from .bspline import UniformBasis
 from .fbs import FbsConfig, fbs_solve
 from .kernels import (
     DriveFilter,
     drive_kernel,
+    drive_mech_kernel,
+    drive_mech_system,
     drive_tail_samples,
     ltv_mech_response,
     mech_arrays,
     mech_kernels,
     mech_tail_samples,
 )
-from .ltv import simulate_piecewise
+from .ltv import simulate_lti, simulate_piecewise
 
 __all__ = ["METHODS", "InverseConfig", "InverseResult", "invert", "mech_tail_for"]
 
@@ -68,6 +70,14 @@ class InverseConfig:
     kernel_tol : truncate kernels when the slowest mode has decayed to this fraction
     bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
         with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
+    drive_weighted : measure the drive stage's miss where it matters, at the carriage: its residual
+        goes through each tower's centre-pose mechanics (the drive output of a spline command is not
+        itself in the spline space, so an unweighted fit of the drive positions misses between the
+        samples what the mechanics then feel); in-memory inverse only
+    derivatives : {"samples", "given"}: the reference velocity and acceleration in the inverse
+        dynamics: central differences of the samples (default: the firmware moves linearly between
+        them, so corners' velocity jumps are part of the motion) or the caller's (a planner's exact
+        derivatives, which leave the jumps out); the streaming inverse's bounds use the caller's
     """
 
     method: str = "lpv"
@@ -86,10 +96,14 @@ class InverseConfig:
     row_stride: int = 2
     kernel_tol: float = 1e-3
     bounds: tuple | None = None
+    drive_weighted: bool = False
+    derivatives: str = "samples"
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {sorted(METHODS)}, got {self.method!r}")
+        if self.derivatives not in ("samples", "given"):
+            raise ValueError(f"derivatives must be 'samples' or 'given', got {self.derivatives!r}")
 
 
 @dataclass(frozen=True)
@@ -116,9 +130,16 @@ def mech_tail_for(model: LpvModel, xyz_m: np.ndarray, dt_s: float, tol: float = 
 
 
 def _derivatives(q: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity and acceleration of a sampled trajectory (central differences)."""
-    qd = np.gradient(q, dt_s, axis=0)
-    qdd = np.gradient(qd, dt_s, axis=0)
+    """Velocity and acceleration of a sampled trajectory at rest before and after its ends.
+
+    Central differences ``(q+ - q-) / 2 dt`` and the compact second difference
+    ``(q+ - 2 q + q-) / dt^2`` (three samples wide: a velocity jump at a corner stays within one
+    sample either side, where ``gradient(gradient(q))`` would smear it over five).
+    """
+    q = np.asarray(q, float)
+    qp = np.concatenate([q[:1], q, q[-1:]])
+    qd = (qp[2:] - qp[:-2]) / (2.0 * dt_s)
+    qdd = (qp[2:] - 2.0 * qp[1:-1] + qp[:-2]) / dt_s**2
     return qd, qdd
 
 
@@ -168,7 +189,7 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
     n_post = int(round(cfg.post_s / dt_s))
     pad = lambda a: np.concatenate([np.repeat(a[:1], n_pre, 0), a, np.repeat(a[-1:], n_post, 0)])  # noqa: E731
     q, X = pad(q_ref_m), pad(xyz_ref_m)
-    if qd_ref is None or qdd_ref is None:
+    if qd_ref is None or qdd_ref is None or cfg.derivatives == "samples":
         qd, qdd = _derivatives(q, dt_s)
     else:
         z = lambda a: np.concatenate([np.zeros((n_pre, 3)), a, np.zeros((n_post, 3))])  # noqa: E731
@@ -193,17 +214,33 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
     dwin = _round_to(int(round(cfg.drive_window_s / dt_s)), m)
     dadv = _round_to(int(round(cfg.drive_advance_s / dt_s)), m)
     q_cmd = np.empty_like(q)
+    if cfg.drive_weighted:
+        x0 = X[:1].copy()
+        x0[:, :2] = 0.0
+        A0, B0 = mech_arrays(model.matrices(x0, check=False))
+        delta_d = basis.evaluate(coef_u, Np, deriv=1)
     for i in range(3):
         d0, d1, d2 = mats_all.d0[i], mats_all.d1[i], mats_all.d2[i]
         lag, dly = mats_all.lag_s[i], mats_all.delay_s[i]
         L_b = basis.support + drive_tail_samples(d0, d2, lag, dt_s)
-        k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
         u_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s)(q[:, i] - q[0, i]) + q[0, i]
+        if cfg.drive_weighted:
+            # residual at carriage i: the drive+mechanics kernel against the mechanics' response to
+            # the intended drive positions (the spline delta and its exact derivative)
+            L_b += mech_tail_samples(model.matrices(x0, check=False), dt_s, cfg.kernel_tol)
+            Ac, Bc, Cc = drive_mech_system(drive_filter_ss(d0, d1, d2, lag, dly), A0[0], B0[0], i)
+            k = drive_mech_kernel(Ac, Bc, Cc, basis, L_b)
+            ud_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s, derivative=True)(q[:, i] - q[0, i])
+            w_in = np.stack([u[:, i] - u_ref, qd[:, i] + delta_d[:, i] - ud_ref], 1)
+            xs, _ = simulate_lti(A0[0], B0[0][:, [i, 3 + i]], w_in, dt_s)
+            target = xs[:, i:i + 1]
+        else:
+            k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
+            target = (u[:, i] - u_ref)[:, None]
 
         def dk(j0, j1, k=k):
             return np.broadcast_to(k[None, None, :, None], (j1 - j0, 1, len(k), 1))
 
-        target = (u[:, i] - u_ref)[:, None]
         coef_d, _ = fbs_solve(target, dk, L_b, FbsConfig(basis, dwin, dadv, cfg.reg, lti=True))
         q_cmd[:, i] = q[:, i] + basis.evaluate(coef_d[:, 0], Np)
     sl = slice(n_pre, n_pre + N)

@@ -35,6 +35,23 @@ from .ltv import simulate_lti
 __all__ = ["FbsStream", "StreamingInverse"]
 
 
+def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Value, velocity and acceleration of one basis function as the firmware moves the command.
+
+    Splines of degree >= 2 have continuous velocity and acceleration (their analytic derivatives).
+    A linear spline's samples are joined by straight segments: its velocity is the central
+    difference and its acceleration the second difference of the samples (the change of segment
+    velocity over one sample), one sample beyond the support on either side.
+    """
+    if basis.degree >= 2:
+        return basis.shape(0), basis.shape(1), basis.shape(2)
+    dt = basis.dt_s
+    s = np.concatenate([[0.0], basis.shape(0), [0.0, 0.0]])  # samples -1 .. support + 1
+    v = (s[2:] - s[:-2]) / (2.0 * dt)
+    a = (s[2:] - 2.0 * s[1:-1] + s[:-2]) / dt**2
+    return s[1:-1], v, a
+
+
 class FbsStream:
     """Windowed LTI filtered-B-spline least squares, fed in chunks.
 
@@ -203,7 +220,9 @@ class FbsStream:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
         sup = self.basis.support
         if not hasattr(self, "_shapes"):
-            self._shapes = (self.basis.shape(0), self.basis.shape(1), self.basis.shape(2))
+            self._shapes = _command_shapes(self.basis)
+            self._sup_rows = len(self._shapes[0])
+        sup = self._sup_rows
         off = rows[:, None] - starts[None, :]
         ok = (off >= 0) & (off < sup)
         oc = np.clip(off, 0, sup - 1)
@@ -222,6 +241,8 @@ class FbsStream:
         """
         D, V, Acc = self.bounds
         h = self.m * self.basis.dt_s
+        # a linear spline's acceleration is its samples' second difference: d2c / (m dt^2) at a knot
+        h2 = h * h if self.basis.degree >= 2 else self.m * self.basis.dt_s ** 2
         z = np.zeros((2, c.shape[1]))
         call = np.concatenate([z, cp, c, z])
         d1 = np.diff(call, axis=0)
@@ -229,7 +250,7 @@ class FbsStream:
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
-                    and np.max(np.abs(d2)) / (h * h) + amax <= Acc)
+                    and np.max(np.abs(d2)) / h2 + amax <= Acc)
 
     def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
         import osqp
@@ -395,10 +416,12 @@ class StreamingInverse:
         self.n_out = 0  # stream rows produced (with the padding)
         self._returned = 0  # commands returned to the caller
         self._pre_out = None
+        self._held = None  # newest sample, waiting for its successor (see _push_differenced)
 
     def _start(self, q0, x0):
         m, cfg, dt = self.basis.m, self.cfg, self.dt
         self.q0 = q0.copy()
+        self._qprev = q0.copy()  # the sample before the stream's first: the rest padding
         self.x_centre = np.array([0.0, 0.0, x0[2]])
         mats0 = self.model.matrices(self.x_centre[None], check=False)
         A0, _ = mech_arrays(mats0)
@@ -443,15 +466,17 @@ class StreamingInverse:
         z = np.zeros((n_pre, 3))
         self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
 
-    def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
+    def _push(self, q, qd, qdd, X, pin=None, forcing=None) -> np.ndarray:
+        """Stage 1 on new rows; ``forcing`` = (qd, qdd) for the inverse dynamics (default: ``qd, qdd``)."""
         cfg = self.cfg
+        fqd, fqdd = (qd, qdd) if forcing is None else forcing
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
         self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
         mats = self.model.matrices(Xm, check=False)
-        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, self.q0)
+        g = inverse_dynamics_force(self.model, mats, q, fqd, fqdd, Xm if cfg.method == "lti-centre" else X, self.q0)
         g = g * (self.Bk0 / mats.B_k)  # the drive pushes with the pose's belt stiffness (see inverse.py)
         # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
         if self.zA is None:
@@ -519,12 +544,48 @@ class StreamingInverse:
                              "(see ffcomp.kinematics.carriage_rates)")
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())
-        out = self._push(q_m, qd, qdd, xyz_m, None if hold is None else np.asarray(hold, bool))
+        pin = np.zeros(len(q_m), bool) if hold is None else np.asarray(hold, bool)
+        if self.cfg.derivatives == "given":
+            out = self._push(q_m, np.asarray(qd, float), np.asarray(qdd, float), xyz_m, pin)
+        else:
+            out = self._push_differenced(q_m, xyz_m, np.asarray(qd, float), np.asarray(qdd, float), pin)
         if self._pre_out is not None:
             out = np.concatenate([self._pre_out, out])
             self._pre_out = None
         self._returned += len(out)
         return out
+
+    def _push_differenced(self, q, X, qd, qdd, pin) -> np.ndarray:
+        """Stage 1 with the forcing's derivatives taken from the samples themselves, one sample late.
+
+        The firmware moves linearly between the samples, so the motion the mechanics must be
+        driven through is the samples', velocity jumps at corners included.  A planner's exact
+        derivatives describe the planned curve between the jumps but leave out the jumps (a square
+        corner, every vertex of a sliced circle): the inverse then never hears of them.  Central
+        differences ``(q+ - q-) / 2 dt`` and ``(q+ - 2 q + q-) / dt^2`` see them; the newest sample
+        waits for its successor (:meth:`finish` flushes it against the rest that follows).
+        """
+        if self._held is not None:
+            q, X, qd, qdd, pin = (np.concatenate([h, a]) for h, a in zip(self._held, (q, X, qd, qdd, pin)))
+        self._held = (q[-1:], X[-1:], qd[-1:], qdd[-1:], pin[-1:])
+        if len(q) < 2:
+            return np.zeros((0, 3))
+        prev = np.concatenate([self._qprev[None], q[:-2]])
+        nxt, cur = q[1:], q[:-1]
+        self._qprev = q[-2].copy()
+        dt = self.dt
+        f = ((nxt - prev) / (2.0 * dt), (nxt - 2.0 * cur + prev) / dt**2)
+        return self._push(cur, qd[:-1], qdd[:-1], X[:-1], pin[:-1], forcing=f)
+
+    def _flush_held(self) -> np.ndarray:
+        """The last sample held back by :meth:`_push_differenced`, differenced against the rest after it."""
+        if getattr(self, "_held", None) is None:
+            return np.zeros((0, 3))
+        q, X, qd, qdd, pin = self._held
+        self._held = None
+        dt = self.dt
+        f = ((q - self._qprev) / (2.0 * dt), (self._qprev - q) / dt**2)
+        return self._push(q, qd, qdd, X, pin, forcing=f)
 
     def finish(self) -> np.ndarray:
         """Flush: rest padding after the end, the remaining windows; returns the last commands."""
@@ -533,7 +594,8 @@ class StreamingInverse:
         q_last, x_last = self._last
         n_post = int(round(self.cfg.post_s / self.dt))
         z = np.zeros((n_post, 3))
-        parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
+        parts = [self._flush_held()]
+        parts.append(self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0)))
         delta = self.mech.finish()
         parts.append(self._stage2_final(delta))
         out = np.concatenate(parts)
