@@ -19,8 +19,9 @@ from scipy.linalg import cho_factor, cho_solve
 from ..errors import SolverError
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
+from .differ import SplineDerivatives
 from .fbs import _dense_basis
-from .inverse import InverseConfig, _round_to, inverse_dynamics_force
+from .inverse import InverseConfig, LtiStream, _round_to, inertia_split, inverse_dynamics_force, mech_target
 from .kernels import (
     DriveFilter,
     drive_kernel,
@@ -28,9 +29,7 @@ from .kernels import (
     mech_arrays,
     mech_kernels,
     mech_tail_samples,
-    modal_foh,
 )
-from .ltv import simulate_lti
 
 __all__ = ["FbsStream", "StreamingInverse"]
 
@@ -416,22 +415,22 @@ class StreamingInverse:
         self.n_out = 0  # stream rows produced (with the padding)
         self._returned = 0  # commands returned to the caller
         self._pre_out = None
-        self._held = None  # newest sample, waiting for its successor (see _push_differenced)
+        self._diff = None  # the reference's derivatives from its samples (cfg.derivatives == "samples")
 
     def _start(self, q0, x0):
         m, cfg, dt = self.basis.m, self.cfg, self.dt
         self.q0 = q0.copy()
-        self._qprev = q0.copy()  # the sample before the stream's first: the rest padding
+        if cfg.derivatives == "samples":
+            self._diff = SplineDerivatives(q0, dt)
         self.x_centre = np.array([0.0, 0.0, x0[2]])
         mats0 = self.model.matrices(self.x_centre[None], check=False)
         A0, _ = mech_arrays(mats0)
         self.A0 = A0[0]
         self.Bf = np.zeros((6, 3))
         self.Bf[3:] = np.linalg.inv(mats0.M[0])
-        self.foh0 = modal_foh(self.A0[None], self.Bf[None], dt)
+        self._lti = (LtiStream(self.A0, self.Bf, dt), LtiStream(self.A0, self.Bf, dt))
+        self._M_prev = None
         self.Bk0 = mats0.B_k[0].copy()
-        self.zA = None
-        self.g_last = None
         L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
         k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
         win = _round_to(int(round(cfg.window_s / dt)), m)
@@ -464,7 +463,11 @@ class StreamingInverse:
         n_post = int(round(cfg.post_s / dt))
         self.n_post = n_post
         z = np.zeros((n_pre, 3))
-        self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+        if self._diff is None:
+            self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+        else:
+            self._pre_out = self._push_differenced(np.repeat(q0[None], n_pre, 0), np.repeat(x0[None], n_pre, 0),
+                                                   np.zeros(n_pre, bool))
 
     def _push(self, q, qd, qdd, X, pin=None, forcing=None) -> np.ndarray:
         """Stage 1 on new rows; ``forcing`` = (qd, qdd) for the inverse dynamics (default: ``qd, qdd``)."""
@@ -477,16 +480,12 @@ class StreamingInverse:
             Xm[:, :2] = 0.0
         mats = self.model.matrices(Xm, check=False)
         g = inverse_dynamics_force(self.model, mats, q, fqd, fqdd, Xm if cfg.method == "lti-centre" else X, self.q0)
-        g = g * (self.Bk0 / mats.B_k)  # the drive pushes with the pose's belt stiffness (see inverse.py)
-        # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
-        if self.zA is None:
-            tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt, foh=self.foh0)
-        else:
-            t2, self.zA = simulate_lti(self.A0, self.Bf, np.concatenate([self.g_last, g]), self.dt, z0=self.zA,
-                                       foh=self.foh0)
-            tgt = t2[1:]
-        self.g_last = g[-1:]
-        return self._stage2(q, self.mech.feed(tgt[:, :3]))
+        sc = self.Bk0 / mats.B_k  # the drive pushes with the pose's belt stiffness (see inverse.py)
+        h, dh = inertia_split(mats, qd, qdd, self.dt, self._M_prev)
+        self._M_prev = mats.M[-1].copy()
+        # H0[g] (inertia as the derivative of H0[h]), continuing the modal states across chunks
+        tgt = mech_target(self.A0, self.Bf, g * sc, h * sc, dh * sc, self.dt, lti=self._lti)
+        return self._stage2(q, self.mech.feed(tgt))
 
     def _stage2(self, q, delta) -> np.ndarray:
         self.qbuf_u = np.concatenate([self.qbuf_u, q])
@@ -545,47 +544,27 @@ class StreamingInverse:
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())
         pin = np.zeros(len(q_m), bool) if hold is None else np.asarray(hold, bool)
-        if self.cfg.derivatives == "given":
+        if self._diff is None:
             out = self._push(q_m, np.asarray(qd, float), np.asarray(qdd, float), xyz_m, pin)
         else:
-            out = self._push_differenced(q_m, xyz_m, np.asarray(qd, float), np.asarray(qdd, float), pin)
+            out = self._push_differenced(q_m, xyz_m, pin)
         if self._pre_out is not None:
             out = np.concatenate([self._pre_out, out])
             self._pre_out = None
         self._returned += len(out)
         return out
 
-    def _push_differenced(self, q, X, qd, qdd, pin) -> np.ndarray:
-        """Stage 1 with the forcing's derivatives taken from the samples themselves, one sample late.
+    def _push_differenced(self, q, X, pin) -> np.ndarray:
+        """Stage 1 with the reference's derivatives taken from the samples (see :mod:`.differ`), a
+        fixed number of samples late: the firmware moves through the samples, velocity jumps at
+        corners included, which a planner's exact derivatives leave out (the command's bounds then
+        compare with the samples' own velocity and acceleration too)."""
+        qq, qd, qdd, XX, pp = self._diff.push(q, X, pin)
+        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
 
-        The firmware moves linearly between the samples, so the motion the mechanics must be
-        driven through is the samples', velocity jumps at corners included.  A planner's exact
-        derivatives describe the planned curve between the jumps but leave out the jumps (a square
-        corner, every vertex of a sliced circle): the inverse then never hears of them.  Central
-        differences ``(q+ - q-) / 2 dt`` and ``(q+ - 2 q + q-) / dt^2`` see them; the newest sample
-        waits for its successor (:meth:`finish` flushes it against the rest that follows).
-        """
-        if self._held is not None:
-            q, X, qd, qdd, pin = (np.concatenate([h, a]) for h, a in zip(self._held, (q, X, qd, qdd, pin)))
-        self._held = (q[-1:], X[-1:], qd[-1:], qdd[-1:], pin[-1:])
-        if len(q) < 2:
-            return np.zeros((0, 3))
-        prev = np.concatenate([self._qprev[None], q[:-2]])
-        nxt, cur = q[1:], q[:-1]
-        self._qprev = q[-2].copy()
-        dt = self.dt
-        f = ((nxt - prev) / (2.0 * dt), (nxt - 2.0 * cur + prev) / dt**2)
-        return self._push(cur, qd[:-1], qdd[:-1], X[:-1], pin[:-1], forcing=f)
-
-    def _flush_held(self) -> np.ndarray:
-        """The last sample held back by :meth:`_push_differenced`, differenced against the rest after it."""
-        if getattr(self, "_held", None) is None:
-            return np.zeros((0, 3))
-        q, X, qd, qdd, pin = self._held
-        self._held = None
-        dt = self.dt
-        f = ((q - self._qprev) / (2.0 * dt), (self._qprev - q) / dt**2)
-        return self._push(q, qd, qdd, X, pin, forcing=f)
+    def _flush_differenced(self) -> np.ndarray:
+        qq, qd, qdd, XX, pp = self._diff.finish()
+        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
 
     def finish(self) -> np.ndarray:
         """Flush: rest padding after the end, the remaining windows; returns the last commands."""
@@ -594,8 +573,11 @@ class StreamingInverse:
         q_last, x_last = self._last
         n_post = int(round(self.cfg.post_s / self.dt))
         z = np.zeros((n_post, 3))
-        parts = [self._flush_held()]
-        parts.append(self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0)))
+        if self._diff is None:
+            parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
+        else:
+            parts = [self._push_differenced(np.repeat(q_last[None], n_post, 0), np.repeat(x_last[None], n_post, 0),
+                                            np.zeros(n_post, bool)), self._flush_differenced()]
         delta = self.mech.finish()
         parts.append(self._stage2_final(delta))
         out = np.concatenate(parts)
