@@ -10,8 +10,8 @@ import numpy as np
 
 from ..model.lpv import LpvModel
 from ..sim.bench import register_variant
-from .inverse import InverseConfig, invert
-from .limit import LIMIT_CONFIG, limit_for_profile
+from .inverse import FINE, InverseConfig, invert
+from .limit import limit_for_profile
 
 __all__ = ["compensate_rows"]
 
@@ -35,7 +35,7 @@ def compensate_rows() -> dict:
 for _name, _method in compensate_rows().items():
     register_variant(_name, _row(_method))
 
-#: the default inverse on the finest basis the firmware executes (linear spline, a knot per sample)
-register_variant("lpv-fine", _row("lpv", LIMIT_CONFIG))
+#: the accuracy setting (cubic spline, a knot per sample; :data:`~ffcomp.compensate.inverse.FINE`)
+register_variant("lpv-fine", _row("lpv", FINE))
 #: the physical limit of the model (:mod:`ffcomp.compensate.limit`); every table compares with it
 register_variant("limit", limit_for_profile)
