@@ -166,13 +166,13 @@ def bench_cases(profile, *, quick: bool = False, z_mm: float = 30.0,
     """Synthetic cases: square and zig-zag at the bed positions (quick: fewer, shorter)."""
     geom = profile.geometry_si()
     rate = float(profile.limits.sample_rate_hz)
-    if quick:
-        return [pattern("square", geom, (0.0, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, loops=1),
-                pattern("square", geom, (100.0, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, loops=1),
-                pattern("zigzag", geom, (0.0, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, lines=6)]
-    out = []
     # off-centre positions pulled in on a smaller bed so the 60 mm square still fits
     s = min(1.0, (float(profile.geometry.print_radius_mm) - 35.0) / 100.0)
+    if quick:
+        return [pattern("square", geom, (0.0, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, loops=1),
+                pattern("square", geom, (100.0 * s, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, loops=1),
+                pattern("zigzag", geom, (0.0, 0.0, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate, lines=6)]
+    out = []
     for name in ("square", "zigzag"):
         for x, y in BED_POSITIONS_MM:
             out.append(pattern(name, geom, (x * s, y * s, z_mm), accel_mm_s2=accel_mm_s2, rate_hz=rate))
