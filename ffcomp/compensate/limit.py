@@ -16,7 +16,7 @@ inverse approximates:
   reference by the tracking error (``r <- r - e``): a Newton step whose Jacobian is the inverse's
   own linearisation along the path.  One iteration reaches the fixed point (about 0.1 um on the
   model's plant for a square at 10,000 mm/s^2); later ones drift by a few hundredths of a um, so the
-  best iterate is kept.
+  best iterate is kept (default: one iteration).
 
 No bounds: at the limit the commands jerk (hundreds of m/s^2 of carriage acceleration on a 250 Hz
 polygon), far beyond what the profile's ``max_carriage_accel_mm_s2`` lets the default do.
@@ -57,7 +57,7 @@ class LimitResult:
 
 
 def limit_commands(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: float, *,
-                   iterations: int = 2, hold: str = "linear", cfg: InverseConfig = LIMIT_CONFIG) -> LimitResult:
+                   iterations: int = 1, hold: str = "linear", cfg: InverseConfig = LIMIT_CONFIG) -> LimitResult:
     """The physical-limit commands for one trajectory held in memory (see the module notes).
 
     Parameters
@@ -95,7 +95,7 @@ def limit_commands(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, 
     return LimitResult(cmds[best], tuple(rms), best)
 
 
-def limit_for_profile(profile, t_s, xyz_ref_m, q_ref_m, *, iterations: int = 2) -> np.ndarray:
+def limit_for_profile(profile, t_s, xyz_ref_m, q_ref_m, *, iterations: int = 1) -> np.ndarray:
     """Bench-row form: ``fn(profile, t_s, xyz_ref_m, q_ref_m) -> q_cmd_m`` (see :mod:`ffcomp.sim.bench`)."""
     dt = float(np.median(np.diff(np.asarray(t_s, float))))
     model = LpvModel.from_profile(profile)
