@@ -22,14 +22,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..linalg3 import matvec3, rmatvec3
-from ..model.lpv import LpvModel, PoseMatrices, drive_filter_ss
+from ..model.lpv import LpvModel, PoseMatrices
 from .bspline import UniformBasis
 from .fbs import FbsConfig, fbs_solve
 from .kernels import (
     DriveFilter,
     drive_kernel,
-    drive_mech_kernel,
-    drive_mech_system,
     drive_tail_samples,
     ltv_mech_response,
     mech_arrays,
@@ -71,10 +69,6 @@ class InverseConfig:
     kernel_tol : truncate kernels when the slowest mode has decayed to this fraction
     bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
         with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
-    drive_weighted : measure the drive stage's miss where it matters, at the carriage: its residual
-        goes through each tower's centre-pose mechanics (the drive output of a spline command is not
-        itself in the spline space, so an unweighted fit of the drive positions misses between the
-        samples what the mechanics then feel); in-memory inverse only
     derivatives : {"samples", "given"}: the reference velocity and acceleration in the inverse
         dynamics: central differences of the samples (default: the firmware moves linearly between
         them, so corners' velocity jumps are part of the motion) or the caller's (a planner's exact
@@ -97,7 +91,6 @@ class InverseConfig:
     row_stride: int = 2
     kernel_tol: float = 1e-3
     bounds: tuple | None = None
-    drive_weighted: bool = False
     derivatives: str = "samples"
 
     def __post_init__(self):
@@ -216,29 +209,13 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
     dwin = _round_to(int(round(cfg.drive_window_s / dt_s)), m)
     dadv = _round_to(int(round(cfg.drive_advance_s / dt_s)), m)
     q_cmd = np.empty_like(q)
-    if cfg.drive_weighted:
-        x0 = X[:1].copy()
-        x0[:, :2] = 0.0
-        A0, B0 = mech_arrays(model.matrices(x0, check=False))
-        delta_d = basis.evaluate(coef_u, Np, deriv=1)
     for i in range(3):
         d0, d1, d2 = mats_all.d0[i], mats_all.d1[i], mats_all.d2[i]
         lag, dly = mats_all.lag_s[i], mats_all.delay_s[i]
         L_b = basis.support + drive_tail_samples(d0, d2, lag, dt_s)
         u_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s)(q[:, i] - q[0, i]) + q[0, i]
-        if cfg.drive_weighted:
-            # residual at carriage i: the drive+mechanics kernel against the mechanics' response to
-            # the intended drive positions (the spline delta and its exact derivative)
-            L_b += mech_tail_samples(model.matrices(x0, check=False), dt_s, cfg.kernel_tol)
-            Ac, Bc, Cc = drive_mech_system(drive_filter_ss(d0, d1, d2, lag, dly), A0[0], B0[0], i)
-            k = drive_mech_kernel(Ac, Bc, Cc, basis, L_b)
-            ud_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s, derivative=True)(q[:, i] - q[0, i])
-            w_in = np.stack([u[:, i] - u_ref, qd[:, i] + delta_d[:, i] - ud_ref], 1)
-            xs, _ = simulate_lti(A0[0], B0[0][:, [i, 3 + i]], w_in, dt_s)
-            target = xs[:, i:i + 1]
-        else:
-            k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
-            target = (u[:, i] - u_ref)[:, None]
+        k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
+        target = (u[:, i] - u_ref)[:, None]
 
         def dk(j0, j1, k=k):
             return np.broadcast_to(k[None, None, :, None], (j1 - j0, 1, len(k), 1))
@@ -289,7 +266,6 @@ def mech_target(A0, Bf, g, h, dh, dt_s, lti=None):
     ``lti`` is a pair of :class:`LtiStream` (streaming) or None (one signal in memory).
     Returns the carriage part (N, 3).
     """
-    from .ltv import simulate_lti
 
     if lti is None:
         x1, _ = simulate_lti(A0, Bf, g - dh, dt_s)
@@ -311,7 +287,6 @@ class LtiStream:
         self.last = None
 
     def __call__(self, w: np.ndarray) -> np.ndarray:
-        from .ltv import simulate_lti
 
         if self.z is None:
             x, self.z = simulate_lti(self.A, self.B, w, self.dt, foh=self.foh)

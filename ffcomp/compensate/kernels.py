@@ -27,8 +27,6 @@ __all__ = [
     "modal_foh",
     "mech_kernels",
     "drive_kernel",
-    "drive_mech_system",
-    "drive_mech_kernel",
     "mech_tail_samples",
     "drive_tail_samples",
     "ltv_mech_response",
@@ -146,47 +144,6 @@ def drive_kernel(d0: float, d1: float, d2: float, lag_s: float, delay_s: float, 
     e = np.exp(foh.lam[0] * basis.dt_s)
     g1, g2 = foh.g1[0, :, 0], foh.g2[0, :, 0]
     cV = c @ foh.V[0]
-    z = np.zeros(len(e), complex)
-    out = np.empty(length)
-    for k in range(length):
-        out[k] = (cV @ z).real
-        z = e * z + g1 * w[k] + g2 * (w[k + 1] - w[k])
-    return out
-
-
-def drive_mech_system(drive_abc: tuple, A_mech: np.ndarray, B_mech: np.ndarray, i: int
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tower ``i``'s drive filter in series with the (frozen) mechanics, seen from carriage ``i``.
-
-    ``drive_abc`` is :func:`drive_filter_ss`'s ``(a, b, c)``; ``A_mech, B_mech`` are one pose's
-    :func:`mech_arrays` (state ``(q, q')``, input ``(u, u')``).  The drive output enters as
-    ``u = c z`` and ``u' = c a z + c b r``.  Returns ``(A, B, C)`` of the series system from the
-    command ``r_i`` to the carriage ``q_i`` (SISO; the other drives held still).
-    """
-    a, b, c = (np.asarray(v, float) for v in drive_abc)
-    nd = len(a)
-    bu, bud = B_mech[:, i], B_mech[:, 3 + i]
-    A = np.zeros((nd + 6, nd + 6))
-    A[:nd, :nd] = a
-    A[nd:, :nd] = np.outer(bu, c) + np.outer(bud, c @ a)
-    A[nd:, nd:] = A_mech
-    B = np.concatenate([b, bud * float(c @ b)])
-    C = np.zeros(nd + 6)
-    C[nd + i] = 1.0
-    return A, B, C
-
-
-def drive_mech_kernel(A: np.ndarray, B: np.ndarray, C: np.ndarray, basis: UniformBasis,
-                      length: int) -> np.ndarray:
-    """Response (length samples) of the SISO system ``(A, B, C)`` to one basis function (FOH, exact
-    for a linear spline with a knot per sample, the command the firmware executes)."""
-    foh = modal_foh(A[None], B[None, :, None], basis.dt_s)
-    w = np.zeros(length + 1)
-    sup = min(basis.support, length + 1)
-    w[:sup] = basis.shape(0)[:sup]
-    e = np.exp(foh.lam[0] * basis.dt_s)
-    g1, g2 = foh.g1[0, :, 0], foh.g2[0, :, 0]
-    cV = C @ foh.V[0]
     z = np.zeros(len(e), complex)
     out = np.empty(length)
     for k in range(length):
