@@ -33,6 +33,7 @@ from .kernels import (
     mech_arrays,
     mech_kernels,
     mech_tail_samples,
+    modal_foh,
 )
 from .ltv import simulate_lti, simulate_piecewise
 
@@ -70,9 +71,9 @@ class InverseConfig:
     bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
         with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
     derivatives : {"samples", "given"}: the reference velocity and acceleration in the inverse
-        dynamics: central differences of the samples (default: the firmware moves linearly between
-        them, so corners' velocity jumps are part of the motion) or the caller's (a planner's exact
-        derivatives, which leave the jumps out); the streaming inverse's bounds use the caller's
+        dynamics: those of the cubic interpolant of the samples (default, :mod:`.differ`: the
+        firmware moves through the samples, so corners' velocity jumps are part of the motion) or
+        the caller's (a planner's exact derivatives, which leave the jumps out)
     """
 
     method: str = "lpv"
@@ -113,8 +114,8 @@ class InverseResult:
     q_pred_mech: np.ndarray
 
 
-#: the accuracy setting: cubic spline, a knot per sample.  Within 1.4x of the physical limit on the
-#: bench (the default's quintic 4 ms spline: 1.4-3.5x) but its commands jerk: carriage accelerations
+#: the accuracy setting: cubic spline, a knot per sample.  1.0-1.6x the physical limit on the bench
+#: (the default's quintic 4 ms spline: 1.3-4.3x, docs/limit.md), but its commands jerk: carriage accelerations
 #: of ~100 m/s^2 at square corners and ~600 m/s^2 on a 250 Hz polygon (the default: ~10 m/s^2), so
 #: the profile's acceleration bound binds and the streaming inverse spends its time in OSQP.
 FINE = InverseConfig(degree=3, knot_samples=1)
@@ -213,13 +214,13 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
         d0, d1, d2 = mats_all.d0[i], mats_all.d1[i], mats_all.d2[i]
         lag, dly = mats_all.lag_s[i], mats_all.delay_s[i]
         L_b = basis.support + drive_tail_samples(d0, d2, lag, dt_s)
-        u_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s)(q[:, i] - q[0, i]) + q[0, i]
         k = drive_kernel(d0, d1, d2, lag, dly, basis, L_b)
-        target = (u[:, i] - u_ref)[:, None]
+        u_ref = DriveFilter(d0, d1, d2, lag, dly, dt_s)(q[:, i] - q[0, i]) + q[0, i]
 
         def dk(j0, j1, k=k):
             return np.broadcast_to(k[None, None, :, None], (j1 - j0, 1, len(k), 1))
 
+        target = (u[:, i] - u_ref)[:, None]
         coef_d, _ = fbs_solve(target, dk, L_b, FbsConfig(basis, dwin, dadv, cfg.reg, lti=True))
         q_cmd[:, i] = q[:, i] + basis.evaluate(coef_d[:, 0], Np)
     sl = slice(n_pre, n_pre + N)
@@ -266,7 +267,6 @@ def mech_target(A0, Bf, g, h, dh, dt_s, lti=None):
     ``lti`` is a pair of :class:`LtiStream` (streaming) or None (one signal in memory).
     Returns the carriage part (N, 3).
     """
-
     if lti is None:
         x1, _ = simulate_lti(A0, Bf, g - dh, dt_s)
         x2, _ = simulate_lti(A0, Bf, h, dt_s)
@@ -279,15 +279,12 @@ class LtiStream:
     """``simulate_lti`` of one system over consecutive chunks (modal state and last input carried)."""
 
     def __init__(self, A, B, dt_s):
-        from .kernels import modal_foh
-
         self.A, self.B, self.dt = A, B, dt_s
         self.foh = modal_foh(A[None], B[None], dt_s)
         self.z = None
         self.last = None
 
     def __call__(self, w: np.ndarray) -> np.ndarray:
-
         if self.z is None:
             x, self.z = simulate_lti(self.A, self.B, w, self.dt, foh=self.foh)
         else:

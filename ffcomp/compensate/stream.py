@@ -217,7 +217,6 @@ class FbsStream:
 
     def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
-        sup = self.basis.support
         if not hasattr(self, "_shapes"):
             self._shapes = _command_shapes(self.basis)
             self._sup_rows = len(self._shapes[0])
@@ -241,7 +240,7 @@ class FbsStream:
         D, V, Acc = self.bounds
         h = self.m * self.basis.dt_s
         # a linear spline's acceleration is its samples' second difference: d2c / (m dt^2) at a knot
-        h2 = h * h if self.basis.degree >= 2 else self.m * self.basis.dt_s ** 2
+        h2 = h * h if self.basis.degree >= 2 else self.m * self.basis.dt_s**2
         z = np.zeros((2, c.shape[1]))
         call = np.concatenate([z, cp, c, z])
         d1 = np.diff(call, axis=0)
@@ -469,17 +468,16 @@ class StreamingInverse:
             self._pre_out = self._push_differenced(np.repeat(q0[None], n_pre, 0), np.repeat(x0[None], n_pre, 0),
                                                    np.zeros(n_pre, bool))
 
-    def _push(self, q, qd, qdd, X, pin=None, forcing=None) -> np.ndarray:
-        """Stage 1 on new rows; ``forcing`` = (qd, qdd) for the inverse dynamics (default: ``qd, qdd``)."""
+    def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
+        """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
-        fqd, fqdd = (qd, qdd) if forcing is None else forcing
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
         self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
         mats = self.model.matrices(Xm, check=False)
-        g = inverse_dynamics_force(self.model, mats, q, fqd, fqdd, Xm if cfg.method == "lti-centre" else X, self.q0)
+        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, self.q0)
         sc = self.Bk0 / mats.B_k  # the drive pushes with the pose's belt stiffness (see inverse.py)
         h, dh = inertia_split(mats, qd, qdd, self.dt, self._M_prev)
         self._M_prev = mats.M[-1].copy()
