@@ -149,3 +149,34 @@ def test_sim_measure_cli(capsys, tmp_path):
     assert (tmp_path / "m.png").exists()
     code, out, err = run(capsys, "sim-measure", "--kind", "carriage", "--input", "z", "-o", f)
     assert code != 0
+
+
+def test_limit_ratios_and_table(geom):
+    """Every table row is divided by the limit row's lag-aligned RMS, case by case."""
+    from ffcomp.sim import metrics
+
+    tr = pattern("square", geom, (0.0, 0.0, 30.0), loops=1)
+    reps = []
+    for off in (30e-6, 10e-6):  # a row 30 um off, the "limit" 10 um off, both along x
+        act = tr.xyz_m + np.array([off, 0.0, 0.0]) * np.sin(np.arange(len(tr.t_s)) * 0.3)[:, None]
+        reps.append(metrics.evaluate(tr.t_s, tr.xyz_m, act))
+    rows = [{"name": "row", "kind": "compensation"}, {"name": bench.LIMIT_ROW, "kind": "compensation"}]
+    res = bench.BenchResult("p", bench.ShaperTuning(60.0, 62.0, 0.1, 0.03), rows)
+    res.cases.append(bench.CaseResult(tr, ("row", bench.LIMIT_ROW), np.stack([tr.xyz_m] * 2), tuple(reps), 0.0))
+    r = bench.limit_ratios(res)
+    assert r[0][0] == pytest.approx(3.0, rel=0.02) and r[1][0] == pytest.approx(1.0)
+    table = bench.markdown_table(res)
+    assert "Distance from the physical limit" in table and "| row | 3.00x |" in table
+
+
+def test_bench_cases_include_polygon_and_z_loops_and_fit_a_smaller_bed(profile):
+    from pathlib import Path
+
+    from ffcomp.profile import load_profile
+
+    small = load_profile(Path(__file__).resolve().parents[1] / "samples" / "profiles" / "other_delta.toml")
+    for p in (profile, small):
+        names = [c.name for c in bench.bench_cases(p)]
+        assert sum(n.startswith("polygon") for n in names) == 2 and sum(n.startswith("zmove") for n in names) == 2
+    z = [c for c in bench.bench_cases(small) if c.name.startswith("zmove")][0]
+    assert np.ptp(z.xyz_m[:, 2]) > 0.01  # the z loop climbs

@@ -33,10 +33,12 @@ from .kernels import (
     mech_arrays,
     mech_kernels,
     mech_tail_samples,
+    modal_foh,
 )
-from .ltv import simulate_piecewise
+from .ltv import simulate_lti, simulate_piecewise
 
-__all__ = ["METHODS", "InverseConfig", "InverseResult", "invert", "mech_tail_for"]
+__all__ = ["METHODS", "FINE", "InverseConfig", "InverseResult", "invert", "mech_tail_for", "inertia_split",
+           "mech_target", "LtiStream"]
 
 #: inverse variants: how the mechanics stage sees the position-dependent model
 METHODS = {
@@ -68,6 +70,10 @@ class InverseConfig:
     kernel_tol : truncate kernels when the slowest mode has decayed to this fraction
     bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
         with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
+    derivatives : {"samples", "given"}: the reference velocity and acceleration in the inverse
+        dynamics: those of the cubic interpolant of the samples (default, :mod:`.differ`: the
+        firmware moves through the samples, so corners' velocity jumps are part of the motion) or
+        the caller's (a planner's exact derivatives, which leave the jumps out)
     """
 
     method: str = "lpv"
@@ -86,10 +92,13 @@ class InverseConfig:
     row_stride: int = 2
     kernel_tol: float = 1e-3
     bounds: tuple | None = None
+    derivatives: str = "samples"
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {sorted(METHODS)}, got {self.method!r}")
+        if self.derivatives not in ("samples", "given"):
+            raise ValueError(f"derivatives must be 'samples' or 'given', got {self.derivatives!r}")
 
 
 @dataclass(frozen=True)
@@ -105,6 +114,13 @@ class InverseResult:
     q_pred_mech: np.ndarray
 
 
+#: the accuracy setting: cubic spline, a knot per sample.  1.0-1.6x the physical limit on the bench
+#: (the default's quintic 4 ms spline: 1.3-4.3x, docs/limit.md), but its commands jerk: carriage accelerations
+#: of ~100 m/s^2 at square corners and ~600 m/s^2 on a 250 Hz polygon (the default: ~10 m/s^2), so
+#: the profile's acceleration bound binds and the streaming inverse spends its time in OSQP.
+FINE = InverseConfig(degree=3, knot_samples=1)
+
+
 def _round_to(n: int, m: int) -> int:
     return max(m, int(round(n / m)) * m)
 
@@ -116,10 +132,11 @@ def mech_tail_for(model: LpvModel, xyz_m: np.ndarray, dt_s: float, tol: float = 
 
 
 def _derivatives(q: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Velocity and acceleration of a sampled trajectory (central differences)."""
-    qd = np.gradient(q, dt_s, axis=0)
-    qdd = np.gradient(qd, dt_s, axis=0)
-    return qd, qdd
+    """Velocity and acceleration of a sampled trajectory at rest before and after its ends: those
+    of its cubic interpolant (:func:`~ffcomp.compensate.differ.spline_derivatives`)."""
+    from .differ import spline_derivatives
+
+    return spline_derivatives(q, dt_s)
 
 
 def reference_forcing(mats: PoseMatrices, q, qd, qdd) -> np.ndarray:
@@ -168,7 +185,7 @@ def invert(model: LpvModel, q_ref_m: np.ndarray, xyz_ref_m: np.ndarray, dt_s: fl
     n_post = int(round(cfg.post_s / dt_s))
     pad = lambda a: np.concatenate([np.repeat(a[:1], n_pre, 0), a, np.repeat(a[-1:], n_post, 0)])  # noqa: E731
     q, X = pad(q_ref_m), pad(xyz_ref_m)
-    if qd_ref is None or qdd_ref is None:
+    if qd_ref is None or qdd_ref is None or cfg.derivatives == "samples":
         qd, qdd = _derivatives(q, dt_s)
     else:
         z = lambda a: np.concatenate([np.zeros((n_pre, 3)), a, np.zeros((n_post, 3))])  # noqa: E731
@@ -227,6 +244,56 @@ def inverse_dynamics_force(model: LpvModel, mats: PoseMatrices, q, qd, qdd, X, q
     return g
 
 
+def inertia_split(mats: PoseMatrices, qd: np.ndarray, qdd: np.ndarray, dt_s: float,
+                  M_prev: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The inertial force ``M q''`` as the time derivative of a momentum-like ``h = M q'``.
+
+    Returns ``h`` (N, 3) and ``dh ~ M q'' + M' q'`` (N, 3), ``M'`` by backward differences from
+    ``M_prev`` (the sample before the first; default: the first's).  The mechanics' response to
+    ``dh`` is then taken as the *velocity* of their response to ``h`` (exact for a linear-time-
+    invariant weighting and ``h`` linear between samples): the sampled acceleration, which at a
+    corner jumps from one sample to the next, never has to be interpolated.
+    """
+    M = mats.M
+    Mp = np.concatenate([(M[:1] if M_prev is None else M_prev[None]), M[:-1]])
+    h = matvec3(M, qd)
+    dh = matvec3(M, qdd) + matvec3((M - Mp) / dt_s, qd)
+    return h, dh
+
+
+def mech_target(A0, Bf, g, h, dh, dt_s, lti=None):
+    """``H0[g]`` with its inertial part through :func:`inertia_split`: ``H0[g - dh] + d/dt H0[h]``.
+
+    ``lti`` is a pair of :class:`LtiStream` (streaming) or None (one signal in memory).
+    Returns the carriage part (N, 3).
+    """
+    if lti is None:
+        x1, _ = simulate_lti(A0, Bf, g - dh, dt_s)
+        x2, _ = simulate_lti(A0, Bf, h, dt_s)
+    else:
+        x1, x2 = lti[0](g - dh), lti[1](h)
+    return x1[:, :3] + x2[:, 3:6]
+
+
+class LtiStream:
+    """``simulate_lti`` of one system over consecutive chunks (modal state and last input carried)."""
+
+    def __init__(self, A, B, dt_s):
+        self.A, self.B, self.dt = A, B, dt_s
+        self.foh = modal_foh(A[None], B[None], dt_s)
+        self.z = None
+        self.last = None
+
+    def __call__(self, w: np.ndarray) -> np.ndarray:
+        if self.z is None:
+            x, self.z = simulate_lti(self.A, self.B, w, self.dt, foh=self.foh)
+        else:
+            x, self.z = simulate_lti(self.A, self.B, np.concatenate([self.last, w]), self.dt, z0=self.z, foh=self.foh)
+            x = x[1:]
+        self.last = w[-1:]
+        return x
+
+
 def _mech_stage_fast(model, q, qd, qdd, X, Xm, basis, win, adv, cfg):
     """Default mechanics stage: the exact LPV inverse, projected on the spline by an LTI-weighted FBS.
 
@@ -234,28 +301,27 @@ def _mech_stage_fast(model, q, qd, qdd, X, Xm, basis, win, adv, cfg):
     weighting, the weighting only shapes how the spline misses ``delta*``; the centre model does
     that well and its normal equations are the same in every window (factorised once).
     """
-    from .ltv import simulate_lti
-
     mats = model.matrices(Xm, check=False)
     g = inverse_dynamics_force(model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, q[0])
     x0 = Xm[:1].copy()
     x0[:, :2] = 0.0
     mats0 = model.matrices(x0, check=False)
     # the drive pushes with the belt stiffness of the pose, the weighting model with the centre's
-    g = g * (mats0.B_k[0] / mats.B_k)
+    sc = mats0.B_k[0] / mats.B_k
+    g = g * sc
+    h, dh = inertia_split(mats, qd, qdd, basis.dt_s)
     A0, _ = mech_arrays(mats0)
     Bf = np.zeros((6, 3))
     Bf[3:] = np.linalg.inv(mats0.M[0])
-    target, _ = simulate_lti(A0[0], Bf, g, basis.dt_s)  # H0[g]: what B delta must produce
+    target = mech_target(A0[0], Bf, g, h * sc, dh * sc, basis.dt_s)  # H0[g]: what B delta must produce
     L = basis.support + mech_tail_samples(mats0, basis.dt_s, cfg.kernel_tol)
     k0 = mech_kernels(mats0, basis, L, cfg.substeps)[0]
 
     def kfn(j0, j1):
         return np.broadcast_to(k0[None], (j1 - j0,) + k0.shape)
 
-    coef, pred = fbs_solve(target[:, :3], kfn, L, FbsConfig(basis, win, adv, cfg.reg, lti=True,
-                                                            row_stride=cfg.row_stride))
-    return coef, pred - target[:, :3]
+    coef, pred = fbs_solve(target, kfn, L, FbsConfig(basis, win, adv, cfg.reg, lti=True, row_stride=cfg.row_stride))
+    return coef, pred - target
 
 
 def _mech_stage_frozen(model, q, qd, qdd, X, basis, win, adv, cfg):

@@ -19,8 +19,9 @@ from scipy.linalg import cho_factor, cho_solve
 from ..errors import SolverError
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
+from .differ import SplineDerivatives
 from .fbs import _dense_basis
-from .inverse import InverseConfig, _round_to, inverse_dynamics_force
+from .inverse import InverseConfig, LtiStream, _round_to, inertia_split, inverse_dynamics_force, mech_target
 from .kernels import (
     DriveFilter,
     drive_kernel,
@@ -28,11 +29,26 @@ from .kernels import (
     mech_arrays,
     mech_kernels,
     mech_tail_samples,
-    modal_foh,
 )
-from .ltv import simulate_lti
 
 __all__ = ["FbsStream", "StreamingInverse"]
+
+
+def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Value, velocity and acceleration of one basis function as the firmware moves the command.
+
+    Splines of degree >= 2 have continuous velocity and acceleration (their analytic derivatives).
+    A linear spline's samples are joined by straight segments: its velocity is the central
+    difference and its acceleration the second difference of the samples (the change of segment
+    velocity over one sample), one sample beyond the support on either side.
+    """
+    if basis.degree >= 2:
+        return basis.shape(0), basis.shape(1), basis.shape(2)
+    dt = basis.dt_s
+    s = np.concatenate([[0.0], basis.shape(0), [0.0, 0.0]])  # samples -1 .. support + 1
+    v = (s[2:] - s[:-2]) / (2.0 * dt)
+    a = (s[2:] - 2.0 * s[1:-1] + s[:-2]) / dt**2
+    return s[1:-1], v, a
 
 
 class FbsStream:
@@ -201,9 +217,10 @@ class FbsStream:
 
     def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
-        sup = self.basis.support
         if not hasattr(self, "_shapes"):
-            self._shapes = (self.basis.shape(0), self.basis.shape(1), self.basis.shape(2))
+            self._shapes = _command_shapes(self.basis)
+            self._sup_rows = len(self._shapes[0])
+        sup = self._sup_rows
         off = rows[:, None] - starts[None, :]
         ok = (off >= 0) & (off < sup)
         oc = np.clip(off, 0, sup - 1)
@@ -222,6 +239,8 @@ class FbsStream:
         """
         D, V, Acc = self.bounds
         h = self.m * self.basis.dt_s
+        # a linear spline's acceleration is its samples' second difference: d2c / (m dt^2) at a knot
+        h2 = h * h if self.basis.degree >= 2 else self.m * self.basis.dt_s**2
         z = np.zeros((2, c.shape[1]))
         call = np.concatenate([z, cp, c, z])
         d1 = np.diff(call, axis=0)
@@ -229,7 +248,7 @@ class FbsStream:
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
-                    and np.max(np.abs(d2)) / (h * h) + amax <= Acc)
+                    and np.max(np.abs(d2)) / h2 + amax <= Acc)
 
     def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
         import osqp
@@ -395,20 +414,22 @@ class StreamingInverse:
         self.n_out = 0  # stream rows produced (with the padding)
         self._returned = 0  # commands returned to the caller
         self._pre_out = None
+        self._diff = None  # the reference's derivatives from its samples (cfg.derivatives == "samples")
 
     def _start(self, q0, x0):
         m, cfg, dt = self.basis.m, self.cfg, self.dt
         self.q0 = q0.copy()
+        if cfg.derivatives == "samples":
+            self._diff = SplineDerivatives(q0, dt)
         self.x_centre = np.array([0.0, 0.0, x0[2]])
         mats0 = self.model.matrices(self.x_centre[None], check=False)
         A0, _ = mech_arrays(mats0)
         self.A0 = A0[0]
         self.Bf = np.zeros((6, 3))
         self.Bf[3:] = np.linalg.inv(mats0.M[0])
-        self.foh0 = modal_foh(self.A0[None], self.Bf[None], dt)
+        self._lti = (LtiStream(self.A0, self.Bf, dt), LtiStream(self.A0, self.Bf, dt))
+        self._M_prev = None
         self.Bk0 = mats0.B_k[0].copy()
-        self.zA = None
-        self.g_last = None
         L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
         k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
         win = _round_to(int(round(cfg.window_s / dt)), m)
@@ -441,9 +462,14 @@ class StreamingInverse:
         n_post = int(round(cfg.post_s / dt))
         self.n_post = n_post
         z = np.zeros((n_pre, 3))
-        self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+        if self._diff is None:
+            self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
+        else:
+            self._pre_out = self._push_differenced(np.repeat(q0[None], n_pre, 0), np.repeat(x0[None], n_pre, 0),
+                                                   np.zeros(n_pre, bool))
 
     def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
+        """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
         self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
@@ -452,16 +478,12 @@ class StreamingInverse:
             Xm[:, :2] = 0.0
         mats = self.model.matrices(Xm, check=False)
         g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, self.q0)
-        g = g * (self.Bk0 / mats.B_k)  # the drive pushes with the pose's belt stiffness (see inverse.py)
-        # H0[g], continuing the modal state across chunks (FOH needs the previous sample)
-        if self.zA is None:
-            tgt, self.zA = simulate_lti(self.A0, self.Bf, g, self.dt, foh=self.foh0)
-        else:
-            t2, self.zA = simulate_lti(self.A0, self.Bf, np.concatenate([self.g_last, g]), self.dt, z0=self.zA,
-                                       foh=self.foh0)
-            tgt = t2[1:]
-        self.g_last = g[-1:]
-        return self._stage2(q, self.mech.feed(tgt[:, :3]))
+        sc = self.Bk0 / mats.B_k  # the drive pushes with the pose's belt stiffness (see inverse.py)
+        h, dh = inertia_split(mats, qd, qdd, self.dt, self._M_prev)
+        self._M_prev = mats.M[-1].copy()
+        # H0[g] (inertia as the derivative of H0[h]), continuing the modal states across chunks
+        tgt = mech_target(self.A0, self.Bf, g * sc, h * sc, dh * sc, self.dt, lti=self._lti)
+        return self._stage2(q, self.mech.feed(tgt))
 
     def _stage2(self, q, delta) -> np.ndarray:
         self.qbuf_u = np.concatenate([self.qbuf_u, q])
@@ -519,12 +541,28 @@ class StreamingInverse:
                              "(see ffcomp.kinematics.carriage_rates)")
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())
-        out = self._push(q_m, qd, qdd, xyz_m, None if hold is None else np.asarray(hold, bool))
+        pin = np.zeros(len(q_m), bool) if hold is None else np.asarray(hold, bool)
+        if self._diff is None:
+            out = self._push(q_m, np.asarray(qd, float), np.asarray(qdd, float), xyz_m, pin)
+        else:
+            out = self._push_differenced(q_m, xyz_m, pin)
         if self._pre_out is not None:
             out = np.concatenate([self._pre_out, out])
             self._pre_out = None
         self._returned += len(out)
         return out
+
+    def _push_differenced(self, q, X, pin) -> np.ndarray:
+        """Stage 1 with the reference's derivatives taken from the samples (see :mod:`.differ`), a
+        fixed number of samples late: the firmware moves through the samples, velocity jumps at
+        corners included, which a planner's exact derivatives leave out (the command's bounds then
+        compare with the samples' own velocity and acceleration too)."""
+        qq, qd, qdd, XX, pp = self._diff.push(q, X, pin)
+        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
+
+    def _flush_differenced(self) -> np.ndarray:
+        qq, qd, qdd, XX, pp = self._diff.finish()
+        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
 
     def finish(self) -> np.ndarray:
         """Flush: rest padding after the end, the remaining windows; returns the last commands."""
@@ -533,7 +571,11 @@ class StreamingInverse:
         q_last, x_last = self._last
         n_post = int(round(self.cfg.post_s / self.dt))
         z = np.zeros((n_post, 3))
-        parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
+        if self._diff is None:
+            parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
+        else:
+            parts = [self._push_differenced(np.repeat(q_last[None], n_post, 0), np.repeat(x_last[None], n_post, 0),
+                                            np.zeros(n_post, bool)), self._flush_differenced()]
         delta = self.mech.finish()
         parts.append(self._stage2_final(delta))
         out = np.concatenate(parts)

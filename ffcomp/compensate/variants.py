@@ -10,17 +10,18 @@ import numpy as np
 
 from ..model.lpv import LpvModel
 from ..sim.bench import register_variant
-from .inverse import InverseConfig, invert
+from .inverse import FINE, InverseConfig, invert
+from .limit import limit_for_profile
 
 __all__ = ["compensate_rows"]
 
 
-def _row(method: str):
+def _row(method: str, cfg: InverseConfig | None = None):
     def fn(profile, t_s, xyz_ref_m, q_ref_m):
         model = LpvModel.from_profile(profile)
         dt = float(np.median(np.diff(t_s)))
         return invert(model, np.asarray(q_ref_m, float), np.asarray(xyz_ref_m, float), dt,
-                      InverseConfig(method=method)).q_cmd
+                      cfg or InverseConfig(method=method)).q_cmd
 
     fn.__doc__ = f"Feedforward compensation, inverse variant {method!r}."
     return fn
@@ -33,3 +34,8 @@ def compensate_rows() -> dict:
 
 for _name, _method in compensate_rows().items():
     register_variant(_name, _row(_method))
+
+#: the accuracy setting (cubic spline, a knot per sample; :data:`~ffcomp.compensate.inverse.FINE`)
+register_variant("lpv-fine", _row("lpv", FINE))
+#: the physical limit of the model (:mod:`ffcomp.compensate.limit`); every table compares with it
+register_variant("limit", limit_for_profile)

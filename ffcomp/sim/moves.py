@@ -19,7 +19,8 @@ import numpy as np
 
 from ..kinematics import DeltaGeometry, check_reachable, inverse
 
-__all__ = ["Trajectory", "plan_polyline", "square_path", "zigzag_path", "pattern", "PATTERNS",
+__all__ = ["Trajectory", "plan_polyline", "square_path", "zigzag_path", "polygon_path", "zmove_path", "pattern",
+           "PATTERNS", "PATTERN_SCV_M_S",
            "load_gcode_trajectory", "longest_piece"]
 
 
@@ -143,16 +144,42 @@ def zigzag_path(centre_m, width_m: float = 0.04, pitch_m: float = 0.002, lines: 
     return np.column_stack([pts + c[:2], np.full(len(pts), c[2])])
 
 
+def polygon_path(centre_m, segments: int = 64, chord_m: float = 0.0008, loops: int = 2) -> np.ndarray:
+    """Vertices of a regular polygon (a sliced circle), ``loops`` times round.
+
+    The default (64 chords of 0.8 mm, radius 8.15 mm) is a sliced circle whose segment rate is
+    250 Hz at 200 mm/s: every vertex is a small velocity kink, a 250 Hz comb of excitation.
+    """
+    c = np.asarray(centre_m, float)
+    r = chord_m / (2.0 * math.sin(math.pi / segments))
+    th = np.arange(segments * loops + 1) * 2.0 * math.pi / segments
+    return np.column_stack([c[0] + r * np.cos(th), c[1] + r * np.sin(th), np.full(len(th), c[2])])
+
+
+def zmove_path(centre_m, side_m: float = 0.03, rise_m: float = 0.012) -> np.ndarray:
+    """Vertices of a loop that climbs and drops in z on every edge (all three carriages move apart)."""
+    c = np.asarray(centre_m, float)
+    h = 0.5 * side_m
+    pts = np.array([[-h, -h, 0.0], [h, -h, rise_m], [h, h, 0.0], [-h, h, 1.5 * rise_m], [-h, -h, 0.0]])
+    return pts + c
+
+
 #: pattern name -> (vertex builder, speed m/s); accelerations are set by the caller
 PATTERNS = {
     "square": (square_path, 0.150),
     "zigzag": (zigzag_path, 0.250),
+    "polygon": (polygon_path, 0.200),
+    "zmove": (zmove_path, 0.150),
 }
+
+#: square corner velocity per pattern (m/s; default 5 mm/s): the polygon's is high enough that it
+#: runs at its full 200 mm/s (with 5 mm/s Klipper would slow its 5.6 degree corners to ~93 mm/s)
+PATTERN_SCV_M_S = {"polygon": 0.020}
 
 
 def pattern(name: str, geom: DeltaGeometry, centre_mm=(0.0, 0.0, 30.0), *, accel_mm_s2: float = 10000.0,
             rate_hz: float = 1000.0, speed_mm_s: float | None = None, **kw) -> Trajectory:
-    """A stress pattern (``square`` or ``zigzag``) translated to ``centre_mm``.
+    """A stress pattern (a key of :data:`PATTERNS`) translated to ``centre_mm``.
 
     ``kw`` goes to the vertex builder (``side_m``, ``loops``; ``width_m``, ``pitch_m``, ``lines``).
     Raises :class:`~ffcomp.errors.KinematicsError` if the pattern leaves the printable disc.
@@ -163,7 +190,7 @@ def pattern(name: str, geom: DeltaGeometry, centre_mm=(0.0, 0.0, 30.0), *, accel
     verts = build(np.asarray(centre_mm, float) * 1e-3, **kw)
     check_reachable(geom, verts, what=f"{name} vertex")
     v = speed if speed_mm_s is None else speed_mm_s * 1e-3
-    t, xyz = plan_polyline(verts, v, accel_mm_s2 * 1e-3, rate_hz=rate_hz)
+    t, xyz = plan_polyline(verts, v, accel_mm_s2 * 1e-3, rate_hz=rate_hz, scv_m_s=PATTERN_SCV_M_S.get(name, 0.005))
     c = centre_mm
     return Trajectory(f"{name}@({c[0]:g},{c[1]:g},{c[2]:g})", t, xyz, inverse(geom, xyz))
 

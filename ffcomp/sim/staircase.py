@@ -1,0 +1,73 @@
+"""The step staircase a stepper actually executes for a carriage command.
+
+The firmware (Klipper) steps where the commanded position, linear between its points, crosses a
+half-step boundary (:func:`ffcomp.steps.step_events`); the carriage command the drive sees is
+then a staircase of whole steps, not the command.  :func:`staircase` samples that staircase on a
+grid ``upsample`` times finer than the command's (each step lands within ``dt / upsample`` of its
+exact time, held in between), so :meth:`~ffcomp.sim.plant.DeltaPlant.simulate` with
+``hold="zoh"`` runs the steps themselves.  Units: SI (m, s).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..steps import step_events
+
+__all__ = ["staircase", "shaped_staircase", "simulate_steps"]
+
+
+def staircase(q_cmd_m: np.ndarray, dt_s: float, steps_per_mm: float, upsample: int = 10,
+              origin_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Step positions (N_f, 3) on the fine grid ``t_f`` (N_f,) for commands ``q_cmd_m`` (N, 3).
+
+    Step 0 sits at ``origin_m`` (the lattice is fixed by homing); the run starts on the step
+    nearest to the first command.  ``N_f = (N - 1) * upsample + 1``.
+    """
+    q = np.asarray(q_cmd_m, float)
+    step = 1e-3 / float(steps_per_mm)
+    n_f = (len(q) - 1) * upsample + 1
+    t_f = np.arange(n_f) * (dt_s / upsample)
+    out = np.empty((n_f, q.shape[1]))
+    for i in range(q.shape[1]):
+        t, d, n0 = step_events(q[:, i] - origin_m, 0.0, dt_s, steps_per_mm)
+        # the count after every event at or before each fine time (an event between grid points
+        # acts from the next one: at most dt / upsample late)
+        k = np.searchsorted(t, t_f, side="right")
+        cum = np.concatenate([[0], np.cumsum(d.astype(np.int64))])
+        out[:, i] = origin_m + (n0 + cum[k]) * step
+    return t_f, out
+
+
+def simulate_steps(plant, t_s: np.ndarray, q_cmd_m: np.ndarray, steps_per_mm: float, upsample: int = 10,
+                   substeps: int = 2, shaped: bool = False):
+    """Nozzle path (N, 3) on ``t_s`` when the plant executes the steps of ``q_cmd_m`` (N, 3): the
+    firmware's staircase, or with ``shaped`` the quantisation-aware stream's."""
+    dt = float(t_s[1] - t_s[0])
+    fn = shaped_staircase if shaped else staircase
+    t_f, q_f = fn(q_cmd_m, dt, steps_per_mm, upsample)
+    res = plant.simulate(t_f, q_f, hold="zoh", substeps=substeps, check=False)
+    return res.xyz_m[0][::upsample]
+
+
+def shaped_staircase(q_cmd_m: np.ndarray, dt_s: float, steps_per_mm: float, upsample: int = 10,
+                     order: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The staircase of the quantisation-aware step stream (:mod:`ffcomp.compensate.quantise`) of
+    commands ``q_cmd_m`` (N, 3), on the fine grid of :func:`staircase`: the events the step writer
+    would emit, each held from the tick it falls in."""
+    from ..compensate.quantise import NoiseShaper, shaped_step_events
+
+    q = np.asarray(q_cmd_m, float)
+    step = 1e-3 / float(steps_per_mm)
+    shaper = NoiseShaper(steps_per_mm, order, q.shape[1])
+    events, _ = shaped_step_events(q, 0.0, dt_s, shaper, None, upsample)
+    n_f = (len(q) - 1) * upsample + 1
+    h = dt_s / upsample
+    t_f = np.arange(n_f) * h
+    out = np.empty((n_f, q.shape[1]))
+    n0 = np.rint(q[0] / step)
+    for i, (t, d) in enumerate(events):
+        k = np.searchsorted(t, t_f, side="right")  # a tick's steps fall inside it, before its end
+        cum = np.concatenate([[0], np.cumsum(d.astype(np.int64))])
+        out[:, i] = (n0[i] + cum[k]) * step
+    return t_f, out
