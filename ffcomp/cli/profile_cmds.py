@@ -50,6 +50,10 @@ def import_cmd(
 
     if (klipper is None) == (m665 is None):
         raise typer.BadParameter("give exactly one of --klipper or --m665")
+    from ..profile_set import FRAMES, to_frame
+
+    if frame not in FRAMES:
+        raise typer.BadParameter(f"expected one of {', '.join(FRAMES)}, got {frame!r}", param_hint="--frame")
     from ..io_atomic import check_output_path
 
     if firmware not in ("marlin", "reprap"):
@@ -59,10 +63,6 @@ def import_cmd(
     notes: list[str] = []
     prof = (from_klipper_cfg(klipper, base, notes=notes) if klipper
             else from_m665(m665, base, print_radius_mm=print_radius, firmware=firmware))
-    from ..profile_set import FRAMES, to_frame
-
-    if frame not in FRAMES:
-        raise typer.BadParameter(f"expected one of {', '.join(FRAMES)}, got {frame!r}", param_hint="--frame")
     prof = to_frame(prof, frame)
     save_profile(prof, output)
     g = prof.geometry
