@@ -122,3 +122,16 @@ def test_compression_within_tick_bound(seed, max_err):
     entries = compress_steps(ticks, max_err, first)
     assert sum(c for _, c, _ in entries) == n
     assert np.max(np.abs(expand_queue(first, entries) - ticks)) <= max_err
+
+
+def test_cli_shape_steps_writes_a_quantisation_aware_stream(capsys, tmp_path):
+    """`--shape-steps` reaches the step writer: more steps (the dither), reconstruction within 2 steps."""
+    from cli_util import run_json
+
+    src = tmp_path / "sq.gcode"
+    src.write_text("G28\nG90\nG1 X0 Y0 Z30 F12000\nG1 X20 F6000\nG1 Y20\nG1 X0\nG1 Y0\n")
+    plain = run_json(capsys, "compensate", src, "-o", tmp_path / "a.ffsteps", "--format", "steps")
+    shaped = run_json(capsys, "compensate", src, "-o", tmp_path / "b.ffsteps", "--format", "steps",
+                      "--shape-steps")
+    assert shaped["steps"] > plain["steps"]
+    assert plain["max_step_error_steps"] <= 1.0 < shaped["max_step_error_steps"] <= 2.0

@@ -31,6 +31,9 @@ def compensate_cmd(
                                         "moves that travel in z.")] = "keep",
     pin_holds: Annotated[bool, typer.Option("--pin-holds/--no-pin-holds", help="Keep the command on the "
                                             "reference during extruder-only moves and dwells.")] = False,
+    shape_steps: Annotated[bool, typer.Option("--shape-steps/--no-shape-steps", help="Step streams only: "
+                                              "choose the steps quantisation-aware (error feedback on a 10x "
+                                              "finer grid: the step error moves to ~5 kHz).")] = False,
     plan_where_limited: Annotated[bool, typer.Option(
         "--plan-where-limited/--compensate-where-limited",
         help="Follow the plan where the firmware's limits would make the compensated command run late "
@@ -82,7 +85,8 @@ def compensate_cmd(
 
         if out is None or out == str(source):
             raise typer.BadParameter("--format steps needs an output file (-o FILE)")
-        summ = steps_file(str(source), out, prof, method=method, lenient=lenient, csv=(fmt == "steps-csv"))
+        summ = steps_file(str(source), out, prof, method=method, lenient=lenient, csv=(fmt == "steps-csv"),
+                          shape=shape_steps)
         _report(summ.to_dict(), json)
         return
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
