@@ -6,7 +6,7 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from ffcomp.gcode import PLANNERS, LinearMove, parse_text, plan_gcode
@@ -44,6 +44,13 @@ def _program(steps) -> str:
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.lists(step, min_size=1, max_size=12), limits, st.sampled_from(sorted(PLANNERS)))
+@example(steps=[((0.0, 0.0, 1.0), 600.0, 0.0, False), ((0.0, 0.0, 1.0), 600.0, 0.0, False),
+                ((0.0, 0.0, 0.25), 6000.0, 0.0, False)],
+         lim={"max_velocity_mm_s": 40.0, "max_accel_mm_s2": 7894.0, "max_z_velocity_mm_s": 70.0,
+              "max_z_accel_mm_s2": 7894.0, "square_corner_velocity_mm_s": 0.0, "minimum_cruise_ratio": 0.0,
+              "junction_deviation_mm": 0.125, "max_extrude_only_velocity_mm_s": 10.0,
+              "max_extrude_only_accel_mm_s2": 300.0},
+         firmware="marlin")  # a Marlin z-only move at max_z_velocity > sqrt(3) max_velocity
 def test_random_polylines_respect_limits_and_end_where_the_gcode_ends(steps, lim, firmware):
     prof = replace(BASE, limits=replace(BASE.limits, planner=firmware, **lim))
     text = _program(steps)
@@ -52,9 +59,14 @@ def test_random_polylines_respect_limits_and_end_where_the_gcode_ends(steps, lim
     moves = list(plan_gcode(text.splitlines(keepends=True), prof, max_extrude_only_distance_mm=None))
     assert moves, text
 
-    axes = 1.0 if firmware == "klipper" else math.sqrt(3.0)  # Marlin: per-axis limits on x, y, z
-    vmax = max(lim["max_velocity_mm_s"], lim["max_extrude_only_velocity_mm_s"]) * axes
-    amax = max(lim["max_accel_mm_s2"], lim["max_extrude_only_accel_mm_s2"]) * axes
+    if firmware == "klipper":  # Klipper limits the speed along the path
+        vmax = max(lim["max_velocity_mm_s"], lim["max_extrude_only_velocity_mm_s"])
+        amax = max(lim["max_accel_mm_s2"], lim["max_extrude_only_accel_mm_s2"])
+    else:  # Marlin: per-axis limits on x and y, and z's own (a z-only move may outrun max_velocity)
+        vmax = math.hypot(math.sqrt(2.0) * max(lim["max_velocity_mm_s"], lim["max_extrude_only_velocity_mm_s"]),
+                          lim["max_z_velocity_mm_s"])
+        amax = math.hypot(math.sqrt(2.0) * max(lim["max_accel_mm_s2"], lim["max_extrude_only_accel_mm_s2"]),
+                          lim["max_z_accel_mm_s2"])
     # Marlin starts a block at no less than its minimum planner speed sqrt(a / 2 steps_per_mm), which
     # may exceed the previous block's exit ("rarely ... but that's ok" in planner.cpp)
     dv_ok = 1e-9 if firmware == "klipper" else math.sqrt(0.5 * amax / BASE.limits.steps_per_mm)
