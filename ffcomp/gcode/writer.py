@@ -7,7 +7,9 @@ the compensated nozzle positions, and every other line kept in place.
 
 * Points are placed adaptively: a segment ends where linear interpolation *in time* (the firmware
   moves a segment at constant speed) would stray from the compensated samples by more than
-  ``tol_mm``.
+  ``tol_mm``.  The points chosen between forced ones (run ends, catch-ups, samples written one by
+  one) then take the values of the least-squares time-linear fit of the samples
+  (:mod:`ffcomp.gcode.knot_fit`): the same lines, a command about 2.5 times closer in RMS.
 * Timing on the absolute clock: with Klipper, the feed rates come from a closed-loop solve
   (:mod:`ffcomp.gcode.feed_solve`) against Klipper's own plan of the written chain (junction
   speeds, ramps, ``max_z_accel * d/|dz|``, the extruder's limits), so every segment ends when its
@@ -350,7 +352,13 @@ class GcodeWriter:
         keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
         if self.fit_points:  # the chosen points' values: the best time-linear fit of the samples
-            P[kidx] = fit_knots(P, kidx, forced[kidx], max_shift=self.tol)
+            # (not on moves with z travel, where max_z_accel * d/|dz| binds the firmware: there the
+            # fit's shifted points moved the re-planned timing, by up to 0.75 ms on cube_prusa with
+            # max_z_accel = 3000, for no gain)
+            zrun = np.array([r.move is not None and abs(r.move.end_mm[2] - r.move.start_mm[2]) > 1e-9
+                             for r in (runs[q] for q in run_ids)])
+            fx = forced | np.repeat(zrun, n_s)
+            P[kidx] = fit_knots(P, kidx, fx[kidx], max_shift=self.tol)
         run_of = np.repeat(np.arange(len(n_s)), n_s)
         same = run_of[kidx[1:]] == run_of[kidx[:-1]]
         i, j = kidx[:-1][same], kidx[1:][same]
