@@ -7,7 +7,9 @@ the compensated nozzle positions, and every other line kept in place.
 
 * Points are placed adaptively: a segment ends where linear interpolation *in time* (the firmware
   moves a segment at constant speed) would stray from the compensated samples by more than
-  ``tol_mm``.
+  ``tol_mm``.  The points chosen between forced ones (run ends, catch-ups, samples written one by
+  one) then take the values of the least-squares time-linear fit of the samples
+  (:mod:`ffcomp.gcode.knot_fit`): the same lines, a command about 2.5 times closer in RMS.
 * Timing on the absolute clock: with Klipper, the feed rates come from a closed-loop solve
   (:mod:`ffcomp.gcode.feed_solve`) against Klipper's own plan of the written chain (junction
   speeds, ramps, ``max_z_accel * d/|dz|``, the extruder's limits), so every segment ends when its
@@ -41,6 +43,7 @@ import numpy as np
 
 from .chain_plan import ChainLimits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
+from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
@@ -124,7 +127,8 @@ class GcodeWriter:
     def __init__(self, lines: Iterator[GcodeLine], out: IO[str], dt_s: float, tol_mm: float,
                  moves: dict[int, PlannedMove], accel_mm_s2: float = float("inf"),
                  max_z_accel_mm_s2: float = float("inf"), max_z_velocity_mm_s: float = float("inf"),
-                 segment_table: IO[bytes] | None = None, chain_limits: ChainLimits | None = None):
+                 segment_table: IO[bytes] | None = None, chain_limits: ChainLimits | None = None,
+                 fit_points: bool = True):
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
@@ -159,6 +163,9 @@ class GcodeWriter:
         self._next_sig = 0  # body line at or after which the next signature line is due
         #: speed of the travel to the first point (None: no travel; see the module docstring), mm/s
         self.start_travel_mm_s: float | None = None
+        #: the points placed between forced ones take the least-squares values of the samples they
+        #: stand for (:mod:`ffcomp.gcode.knot_fit`) instead of the samples' own
+        self.fit_points = fit_points
 
     def _w(self, text: str) -> None:
         self._write(text)
@@ -341,8 +348,17 @@ class GcodeWriter:
         keep[offs[catch] + 1] = True
         if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
             keep |= dense[np.maximum(src, 0)]
+        forced = keep.copy()
         keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
+        if self.fit_points:  # the chosen points' values: the best time-linear fit of the samples
+            # (not on moves with z travel, where max_z_accel * d/|dz| binds the firmware: there the
+            # fit's shifted points moved the re-planned timing, by up to 0.75 ms on cube_prusa with
+            # max_z_accel = 3000, for no gain)
+            zrun = np.array([r.move is not None and abs(r.move.end_mm[2] - r.move.start_mm[2]) > 1e-9
+                             for r in (runs[q] for q in run_ids)])
+            fx = forced | np.repeat(zrun, n_s)
+            P[kidx] = fit_knots(P, kidx, fx[kidx], max_shift=self.tol)
         run_of = np.repeat(np.arange(len(n_s)), n_s)
         same = run_of[kidx[1:]] == run_of[kidx[:-1]]
         i, j = kidx[:-1][same], kidx[1:][same]
