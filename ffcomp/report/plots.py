@@ -37,13 +37,7 @@ def bode_png(path, freq_hz, curves: list[tuple[str, np.ndarray]], *, title: str 
     ax2.set_xlabel("frequency (Hz)")
     ax1.grid(True, which="both", alpha=0.3)
     ax2.grid(True, which="both", alpha=0.3)
-    ax1.legend(fontsize=8)
-    if title:
-        ax1.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, ax1, title, path)
 
 
 def mode_map_png(path, xy_mm: np.ndarray, freq_hz: np.ndarray, *, title: str = "",
@@ -101,10 +95,17 @@ def fit_overlay_png(path, fits, *, title: str = "") -> Path:
     ax3.set_xlabel("frequency (Hz)  (dashed: noise floor)")
     for a in (ax1, ax2, ax3):
         a.grid(True, which="both", alpha=0.3)
-    ax1.legend(fontsize=8)
+    return _save(fig, ax1, title, path)
+
+
+def _save(fig, ax, title: str, path, dpi: int = 110) -> Path:
+    """Legend and title on ``ax``, then write ``fig`` to ``path`` and close it."""
+    import matplotlib.pyplot as plt
+
+    ax.legend(fontsize=8)
     if title:
-        ax1.set_title(title)
+        ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return Path(path)
