@@ -425,10 +425,8 @@ class KlipperPlanner:
 
     def stop(self, command: str, lineno: int) -> None:
         """A command that stops or moves the machine on its own: flush to rest first (as M400)."""
-        self._flush_lookahead()
+        self.sync("M400", lineno)
         self.stops += 1
-        if self.on_stop is not None:
-            self.on_stop(self.print_time, lineno)
 
     def home(self, position, lineno: int) -> None:
         self._flush_lookahead()

@@ -302,10 +302,8 @@ class MarlinPlanner:
 
     def stop(self, command: str, lineno: int) -> None:
         """A command that stops or moves the machine on its own: drain the buffer first (as M400)."""
-        self._drain()
+        self.sync("M400", lineno)
         self.stops += 1
-        if self.on_stop is not None:
-            self.on_stop(self.print_time, lineno)
 
     def home(self, position, lineno: int) -> None:
         self._drain()
