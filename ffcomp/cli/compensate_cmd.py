@@ -70,7 +70,9 @@ def compensate_cmd(
         raise typer.BadParameter(f"--z-mode must be keep, hold or auto, got {z_mode!r}")
     if tol_um <= 0:
         raise typer.BadParameter(f"--tol-um must be > 0, got {tol_um}")
-    if unknown_commands not in ("stop", "pass", "refuse"):
+    from ..gcode.commands import UNKNOWN_POLICIES
+
+    if unknown_commands not in UNKNOWN_POLICIES:
         raise typer.BadParameter(f"--unknown-commands must be stop, pass or refuse, got {unknown_commands!r}")
     from ..gcode.start import parse_start
 

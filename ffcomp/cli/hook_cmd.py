@@ -48,10 +48,6 @@ def hook_cmd(
     final = os.environ.get("SLIC3R_PP_OUTPUT_NAME")
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, inverse=InverseConfig(method=method))
     summ = compensate_file(str(gcode), str(gcode), prof, opts)
-    from rich.markup import escape
-
-    for note in summ.notes:  # e.g. no G28 (set the profile's start_position_mm), unknown macros
-        err_console.print(f"ffcomp: warning: {escape(str(note))}", highlight=False, soft_wrap=True)
     name = f" (final file {final})" if final else ""
     reduction = ""
     if summ.rms_before_um:

@@ -29,15 +29,13 @@ line)); an unknown ``M`` code is passed through (M codes that move the toolhead 
 
 from __future__ import annotations
 
-__all__ = ["MOTION", "STATE", "PASS", "STOP", "UNKNOWN", "CLASSES", "TABLE", "UNKNOWN_POLICIES", "classify"]
+__all__ = ["MOTION", "STATE", "PASS", "STOP", "UNKNOWN", "TABLE", "UNKNOWN_POLICIES", "classify"]
 
 MOTION = "motion"
 STATE = "state"
 PASS = "pass"
 STOP = "stop"
 UNKNOWN = "unknown"
-#: every class a command can end up in (``unknown`` = an unknown macro or G code, before the policy)
-CLASSES = (MOTION, STATE, PASS, STOP, UNKNOWN)
 #: what to do with an unknown macro or G code
 UNKNOWN_POLICIES = ("stop", "pass", "refuse")
 

@@ -14,7 +14,7 @@ depends on the next chunk): they are re-planned, feeds fixed, together with the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -30,8 +30,6 @@ SWEEPS = 8
 RECOVERY_ROUNDS = 3
 #: rounds of waiting out time gained ahead of the clock
 AHEAD_ROUNDS = 3
-#: exponent of the feed update (below 1: damped, for segments coupled through their junctions)
-GAIN = 1.0
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -46,10 +44,6 @@ class TimingState:
     tail: tuple | None = None
     tail_late_s: float = 0.0  #: lateness at the tail's start
     tail_v2: float = 0.0  #: entry speed squared of the tail's first segment
-    max_late_s: float = 0.0  #: largest |lateness| at a segment end so far
-    late_segments: int = 0  #: segments that end more than 0.1 ms off their intended time
-    infeasible_s: float = 0.0  #: time the limits did not let the feeds recover at once
-    stats: dict = field(default_factory=dict)
 
 
 def extrude_only_feed(de: np.ndarray, t: np.ndarray, accel: float, vmax: float) -> np.ndarray:
@@ -100,7 +94,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     def sweeps(F, want, n, floor=None):
         for _ in range(n):
             t = plan(F)[0]
-            F = np.where(free, np.clip(F * (t / want) ** GAIN, 1e-3, Fmax), F)
+            F = np.where(free, np.clip(F * (t / want), 1e-3, Fmax), F)
             if floor is not None:  # recovering: never slower than on the plain clock
                 F = np.maximum(F, floor)
         return F
@@ -117,10 +111,11 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     # when every late segment runs as fast as it can: L_i = max(0, L_{i-1} + lo_i - D_i)
     lo = plan(np.where(free, np.minimum(Fmax, vmax), F))[0]
 
-    def cost(F_):
-        return float(np.sum((late0 + np.cumsum(plan(F_)[0] - D)) ** 2))
+    def cost(t_):  # of the planned durations t_: the squared lateness at every segment end
+        return float(np.sum((late0 + np.cumsum(t_ - D)) ** 2))
 
-    best, best_cost = F, cost(F)
+    best_plan = plan(F)
+    best, best_cost = F, cost(best_plan[0])
     for _ in range(RECOVERY_ROUNDS):
         S = late0 + np.cumsum(lo - D)
         L = S - np.minimum(0.0, np.minimum.accumulate(S))
@@ -129,13 +124,14 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         if not np.any(np.abs(want - D) > 1e-9):
             break
         FB = sweeps(best, want, SWEEPS // 2, floor=FA)
-        t = plan(FB)[0]
-        c = cost(FB)
+        pB = plan(FB)
+        t = pB[0]
+        c = cost(t)
         # keep the recovery only where it helps (the junctions couple the segments, so the
         # fastest durations are estimates); a segment that fell short of its share was slower
         # than estimated: the next round hands the rest on
         if c < best_cost:
-            best, best_cost = FB, c
+            best, best_cost, best_plan = FB, c, pB
         short = free & (t > want * (1 + 1e-3) + 1e-7)
         if not short.any():
             break
@@ -143,20 +139,21 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     # ahead of the clock somewhere (a recovery overshot): the first segment of each stretch that
     # starts ahead waits it out, a few rounds
     for _ in range(AHEAD_ROUNDS):
-        late_end = late0 + np.cumsum(plan(best)[0] - D)
+        t_best = best_plan[0]
+        late_end = late0 + np.cumsum(t_best - D)
         ls = np.concatenate([[late0], late_end[:-1]])
         ahead = free & (ls < -1e-5)
         first = ahead & ~np.r_[False, ahead[:-1]]
         if not first.any():
             break
-        FC = sweeps(best, np.where(first, D - ls, plan(best)[0]), SWEEPS // 2)
-        c = cost(FC)
+        FC = sweeps(best, np.where(first, D - ls, t_best), SWEEPS // 2)
+        pC = plan(FC)
+        c = cost(pC[0])
         if c >= best_cost:
             break
-        best, best_cost = FC, c
-    F = best
-    t, vin, _ = plan(F)
-    return F, late0 + np.cumsum(t - D), vin
+        best, best_cost, best_plan = FC, c, pC
+    t, vin, _ = best_plan
+    return best, late0 + np.cumsum(t - D), vin
 
 
 def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarray, D: np.ndarray,
@@ -227,8 +224,6 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
             Fs, late_end, vin = _solve_chain(lim, q0, q1, dd, DD, free, st.late_s, 0.0, end_open, FF)
             F[sl] = Fs
             late_start0 = st.late_s
-        st.max_late_s = max(st.max_late_s, float(np.max(np.abs(late_end))))
-        st.late_segments += int(np.sum(np.abs(late_end[free]) > 1e-4))
         st.late_s = float(late_end[-1])
         if end_open:
             k = max(0, len(Fs) - TAIL)
@@ -250,7 +245,6 @@ def _close_tail(lim: ChainLimits, st: TimingState) -> None:
     free = np.zeros(len(tF), bool)
     _, late_end, _ = _solve_chain(lim, t0, t1, tde, tD, free, st.tail_late_s, st.tail_v2, False, tF)
     st.late_s = float(late_end[-1])
-    st.max_late_s = max(st.max_late_s, float(np.max(np.abs(late_end))))
     st.tail = None
 
 

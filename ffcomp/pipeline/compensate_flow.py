@@ -22,6 +22,7 @@ from ..compensate.inverse import InverseConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits, segment_limits
+from ..gcode.commands import UNKNOWN_POLICIES
 from ..gcode.flavour import detect_flavour, flavour_mismatch
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
@@ -203,8 +204,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
-    if opts.unknown_policy not in ("stop", "pass", "refuse"):
-        raise ValueError(f"unknown_policy must be stop, pass or refuse, got {opts.unknown_policy!r}")
+    if opts.unknown_policy not in UNKNOWN_POLICIES:
+        raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {opts.unknown_policy!r}")
     total_lines = _refuse_compensated(src)
     if out_path is not None:  # a path that cannot be written fails now, not after all the work
         out_path = check_output_path(out_path)
@@ -236,15 +237,14 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                      home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
                                      start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy))
             accel = header_accel(profile, opts)
+            chain = ChainLimits(profile, accel, opts.corner_velocity_mm_s) if plan.firmware == "klipper" else None
             writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
                                  max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
                                  max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
-                                 chain_limits=(ChainLimits(profile, accel, opts.corner_velocity_mm_s)
-                                               if plan.firmware == "klipper" else None))
+                                 chain_limits=chain)
             writer.start_travel_mm_s = start.travel_mm_s
             pred = Predictor(model, dt) if opts.predict else None
-            bound = (LimitBound(ChainLimits(profile, accel, opts.corner_velocity_mm_s))
-                     if opts.plan_where_limited and plan.firmware == "klipper" else None)
+            bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
             k_written = 0
             last_qc = None
 
@@ -518,7 +518,7 @@ class LimitBound:
     stay compensated: their lateness is recovered by the feed solve and reported.)"""
 
     def __init__(self, lim: ChainLimits, factor: float = 4.0):
-        self.lim, self.factor = lim, factor
+        self.extruder_only, self.factor = _NoAccel(lim), factor
         self.cache: dict[int, bool] = {}
 
     def bound(self, mv) -> bool:
@@ -527,8 +527,8 @@ class LimitBound:
             b = False
             if mv.kind == "move" and (mv.accel_t_s > 0 or mv.decel_t_s > 0):
                 s0, s1 = np.array([mv.start_mm[:3]]), np.array([mv.end_mm[:3]])
-                lim = self.lim
-                acc_cap = segment_limits(_NoAccel(lim), s0, s1, np.array([mv.end_mm[3] - mv.start_mm[3]]))[1][0]
+                de = np.array([mv.end_mm[3] - mv.start_mm[3]])
+                acc_cap = segment_limits(self.extruder_only, s0, s1, de)[1][0]
                 b = bool(acc_cap < self.factor * mv.accel_mm_s2)
             if len(self.cache) > 4096:
                 self.cache.clear()

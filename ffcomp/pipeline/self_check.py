@@ -17,7 +17,6 @@ __all__ = ["self_check", "shape_limit_um", "TIMING_NOTE_MS"]
 
 #: drift (ms) above which the summary notes the timing cost
 TIMING_NOTE_MS = 0.2
-_DEBUG: list | None = None  # set to a list to collect (time, lateness, line) rows
 
 
 def self_check(path: str, qfile: str, profile, geom, summ, opts,
@@ -101,8 +100,6 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
-        if _DEBUG is not None:
-            _DEBUG.append(np.stack([kb * dt, late, R[:, 0]], 1))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
