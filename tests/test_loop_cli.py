@@ -164,3 +164,21 @@ def test_identify_refined_with_a_whole_directory_reaches_the_floor(capsys, tmp_p
     assert out["refined"]["mean_residual_after"] < out["refined"]["mean_residual_before"]
     v = validate(load_profile(tmp_path / "p.toml"), ms)
     assert v.mean_residual <= 1.25 * v.noise_floor
+
+
+def test_refined_profile_is_the_model_that_was_fitted():
+    """The refined profile, written with per-tower k, c and b, predicts exactly what the fit's model
+    (base plus tower_scale, whose damping factor scales c + b) predicted: the same residuals."""
+    from ffcomp.loop.fit import residuals_of
+    from ffcomp.loop.identify_refine import refine_identification
+    from ffcomp.model.lpv import LpvModel
+
+    p = truth()
+    plan = [PlanItem("carriage", (0.0, 0.0, 30.0), q, q) for q in ("qA", "qB", "qC")]
+    plan.append(PlanItem("assembled", (0.0, 0.0, 30.0), "z", "qA"))
+    ms = virtual_measurements(p, [{"name": "tower_scale", "k_scale_B": 0.8, "c_scale_C": 1.5}],
+                              freq_hz=np.geomspace(5, 400, 80), noise=0.01, seed=4, plan=plan)
+    ref = refine_identification(p, ms)
+    assert ref.c_ratio[2] == pytest.approx(1.5, rel=0.15)
+    res = residuals_of(LpvModel.from_profile(ref.profile), ms)
+    assert np.allclose(res, ref.residual_after, rtol=1e-6, atol=1e-9)

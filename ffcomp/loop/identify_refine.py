@@ -17,7 +17,7 @@ import numpy as np
 
 from ..measure.predict import check_measurements
 from ..model.lpv import LpvModel
-from .base_fit import BASE_KEYS, base_spec
+from .base_fit import BASE_KEYS, apply_base_to_profile, base_spec
 from .fit import fit_free
 
 __all__ = ["Refinement", "refine_identification"]
@@ -54,14 +54,10 @@ def refine_identification(profile, measurements) -> Refinement:
     base, ts = res.effects[0], res.effects[1]
     kr = (1.0,) + tuple(float(ts[f"k_scale_{t}"]) for t in "BC")
     cr = (1.0,) + tuple(float(ts[f"c_scale_{t}"]) for t in "BC")
-    dyn = profile.dynamics
-    scale = {k: float(base[k]) / float(np.mean(getattr(dyn, k))) if k in ("m", "k", "d0", "d2") else None
-             for k in BASE_KEYS if k != "b_nt"}
-    kw = {}
-    for key in ("m", "b", "d0", "d1", "d2"):
-        v = float(base[key])
-        kw[key] = (v, v, v) if scale.get(key) is None else tuple(float(x) * scale[key] for x in getattr(dyn, key))
-    kw["k"] = tuple(float(base["k"]) * r for r in kr)
-    kw["c"] = tuple(float(base["c"]) * r for r in cr)
-    new = profile.with_(dynamics=replace(dyn, **kw, b_nt=float(base["b_nt"])))
+    # the model that was fitted: the base (per-tower pattern kept) with tower_scale on top, whose
+    # damping factor scales each carriage's whole damping c + b and whose stiffness factor k
+    new = apply_base_to_profile(profile, base)
+    dyn = new.dynamics
+    new = new.with_(dynamics=replace(dyn, **{key: tuple(float(v) * r for v, r in zip(getattr(dyn, key), ratio))
+                                            for key, ratio in (("k", kr), ("c", cr), ("b", cr))}))
     return Refinement(new, kr, cr, res.residual_before, res.residual_after, tuple(towers))
