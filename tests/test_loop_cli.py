@@ -182,3 +182,19 @@ def test_refined_profile_is_the_model_that_was_fitted():
     assert ref.c_ratio[2] == pytest.approx(1.5, rel=0.15)
     res = residuals_of(LpvModel.from_profile(ref.profile), ms)
     assert np.allclose(res, ref.residual_after, rtol=1e-6, atol=1e-9)
+
+
+def test_a_relative_plugin_name_resolves_per_profile_directory(tmp_path):
+    """The same relative ``plugin = "fx.py"`` in two directories loads two different files."""
+    from ffcomp.model.effects import load_plugin
+
+    names = []
+    for i in (1, 2):
+        d = tmp_path / f"p{i}"
+        d.mkdir()
+        (d / "fx.py").write_text(
+            "from ffcomp.model.effects import Effect, register\n"
+            f"@register\nclass Fx{i}(Effect):\n    name = 'fx_rel_{i}'\n    summary = 'test'\n    params = {{}}\n"
+            "    def apply(self, mats, model):\n        return mats\n")
+        names.append(load_plugin("fx.py", base_dir=str(d)))
+    assert names[0] != names[1]

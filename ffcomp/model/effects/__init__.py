@@ -157,8 +157,6 @@ def load_plugin(ref: str, base_dir=None) -> list[str]:
 
     _load_library()
     ref = str(ref)
-    if ref in _PLUGINS:
-        return _PLUGINS[ref]
     before = dict(EFFECTS)
     if ref.endswith(".py") or "/" in ref or "\\" in ref:
         cands = [Path(ref)] if Path(ref).is_absolute() else (
@@ -166,9 +164,8 @@ def load_plugin(ref: str, base_dir=None) -> list[str]:
         path = next((c for c in cands if c.is_file()), None)
         if path is None:
             raise ValueError(f"effect plug-in {ref!r}: no such file (tried {', '.join(str(c) for c in cands)})")
-        key = str(path.resolve())
+        key = str(path.resolve())  # cached by the file it resolves to, not by the (relative) name
         if key in _PLUGINS:
-            _PLUGINS[ref] = _PLUGINS[key]
             return _PLUGINS[key]
         modname = "ffcomp_plugin_" + "".join(ch if ch.isalnum() else "_" for ch in path.stem) + f"_{len(_PLUGINS)}"
         spec = importlib.util.spec_from_file_location(modname, path)
@@ -181,6 +178,8 @@ def load_plugin(ref: str, base_dir=None) -> list[str]:
             raise ValueError(f"effect plug-in {path}: {type(e).__name__}: {e}") from e
     else:
         key = ref
+        if key in _PLUGINS:
+            return _PLUGINS[key]
         try:
             importlib.import_module(ref)
         except ImportError as e:
@@ -191,7 +190,7 @@ def load_plugin(ref: str, base_dir=None) -> list[str]:
                          "@ffcomp.model.effects.register)")
     for n in new:
         EFFECTS[n].plugin = key  # a file by its absolute path: the profile that names it may live anywhere
-    _PLUGINS[ref] = _PLUGINS[key] = new
+    _PLUGINS[key] = new
     return new
 
 
