@@ -536,8 +536,8 @@ class StreamingInverse:
             return np.zeros((0, 3))
         if not self.started:
             self._start(q_m[0], xyz_m[0])
-        if qd is None or qdd is None:
-            raise ValueError("push needs the carriage velocities and accelerations "
+        if self._diff is None and (qd is None or qdd is None):  # derivatives="given"
+            raise ValueError("push needs the carriage velocities and accelerations with derivatives='given' "
                              "(see ffcomp.kinematics.carriage_rates)")
         self.n_in += len(q_m)
         self._last = (q_m[-1].copy(), xyz_m[-1].copy())

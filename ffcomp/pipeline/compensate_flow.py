@@ -462,7 +462,10 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
                       lineno=blk.lineno[sl])
-            qd, qdd = carriage_rates(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
+            # the planner's exact rates only where the inverse uses them (by default it takes the
+            # derivatives of the samples themselves)
+            qd, qdd = (carriage_rates(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
+                       if icfg.derivatives == "given" else (None, None))
             hold = _holds(blk.move_index[sl], moves) if opts.pin_holds else None
             yield from out(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
         last_q = q[-1].copy()
