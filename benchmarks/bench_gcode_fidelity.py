@@ -2,8 +2,9 @@
 
 Run: ``python benchmarks/bench_gcode_fidelity.py [--quick]``.  For the default profile and for
 ``samples/profiles/other_delta.toml`` (compensated with the identified profile, simulated on
-``other_delta_truth.toml``), on generated files (layer changes with z-hops and retractions, 60 mm
-squares at the centre and 100 mm off, a 64-segment circle, a zig-zag, pure z travel): the
+``other_delta_truth.toml``), on generated files (a 60 mm square in layers with z-hops and
+retractions at the centre, a 40 mm square at (80, 0) (inside both print radii), a 64-segment circle,
+a zig-zag, pure z travel): the
 lag-aligned and contour RMS of the exact commands and of the G-code as a fraction of the
 uncompensated file's, the kept share of the exact commands' reduction, and the largest drift of
 the re-planned output on the absolute clock (ms).  Prints a Markdown table per profile.

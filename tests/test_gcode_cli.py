@@ -85,6 +85,8 @@ def test_plan_errors_and_lenient(capsys, tmp_path):
     near.write_text("G28\nG1 X20 F600\n")
     d = run_json(capsys, "plan", near, "--planner", "marlin")
     assert d["planner"] == "marlin"
+    code, out, err = run(capsys, "plan", far, "--planner", "marlin")  # out of the print volume for Marlin too
+    assert code == 3 and "far.gcode:1" in err
     code, out, err = run(capsys, "plan", far, "--planner", "reprap")
     assert code != 0
 

@@ -94,7 +94,10 @@ def test_steps_file_shaped(tmp_path, profile):
         out[shape] = (summ, read_plain(str(p)))
     plain, shaped = out[False][0], out[True][0]
     assert plain.max_step_error_steps <= 0.5 + 1e-9
-    assert 0.5 < shaped.max_step_error_steps <= 3.0  # dithering around the command, by design
+    assert 0.5 < shaped.max_step_error_steps <= 2.0  # dithering within two steps of the command, by design
     assert shaped.steps > plain.steps  # the price: more steps
-    pos = positions_from_steps(out[True][1], np.array([0.0, 1e9]))
-    assert np.all(np.isfinite(pos))
+    # the stream read back ends within one step of where the plain one does (the dither may stop
+    # on either side of the rest position)
+    end = np.array([1e9])
+    gap = positions_from_steps(out[True][1], end) - positions_from_steps(out[False][1], end)
+    assert np.all(np.abs(gap) <= 1e-3 / profile.limits.steps_per_mm * (1 + 1e-9))

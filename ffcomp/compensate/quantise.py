@@ -23,16 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["NoiseShaper", "shape_quantisation", "round_to_steps", "shaped_step_events", "UPSAMPLE"]
+__all__ = ["NoiseShaper", "shape_quantisation", "shaped_step_events", "UPSAMPLE"]
 
 #: ticks of the shaping grid per command sample (10: 10 kHz for 1 kHz commands)
 UPSAMPLE = 10
-
-
-def round_to_steps(q_m: np.ndarray, steps_per_mm: float, origin_m: float = 0.0) -> np.ndarray:
-    """Plain rounding to the step lattice (step 0 at ``origin_m``), for comparison."""
-    step = 1e-3 / float(steps_per_mm)
-    return origin_m + np.round((np.asarray(q_m, float) - origin_m) / step) * step
 
 
 class NoiseShaper:
