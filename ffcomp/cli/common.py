@@ -53,8 +53,10 @@ def _jsonable(o: Any):
 
 
 def print_json(obj: Any) -> None:
-    """Write ``obj`` as JSON to stdout (numpy arrays become lists)."""
-    sys.stdout.write(json.dumps(obj, default=_jsonable, indent=2) + "\n")
+    """Write ``obj`` as JSON to stdout: numpy arrays become lists, NaN and +-Infinity (not JSON) null."""
+    from ..report.json_safe import finite_json
+
+    sys.stdout.write(json.dumps(finite_json(obj), default=_jsonable, indent=2, allow_nan=False) + "\n")
     sys.stdout.flush()
 
 

@@ -9,15 +9,7 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from .common import JsonOpt, PlotOpt, ProfileOpt, app, console, err_console, load_profile_opt
-from .common import print_json as _print_json
-
-
-def print_json(obj) -> None:
-    """JSON on stdout with NaN/Infinity as null (valid JSON)."""
-    from ..report.json_safe import finite_json
-
-    _print_json(finite_json(obj))
+from .common import JsonOpt, PlotOpt, ProfileOpt, app, console, err_console, load_profile_opt, print_json
 
 
 @app.command("identify")

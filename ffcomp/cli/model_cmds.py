@@ -10,15 +10,7 @@ import typer
 from rich.table import Table
 
 from ..pipeline import model_flow as mf
-from .common import JsonOpt, PlotOpt, ProfileOpt, app, console, load_profile_opt, parse_triple
-from .common import print_json as _print_json
-
-
-def print_json(obj) -> None:
-    """JSON on stdout with NaN/Infinity as null (valid JSON)."""
-    from ..report.json_safe import finite_json
-
-    _print_json(finite_json(obj))
+from .common import JsonOpt, PlotOpt, ProfileOpt, app, console, load_profile_opt, parse_triple, print_json
 
 model_app = typer.Typer(help="Inspect the printer model: parameters, frequency responses, modes.",
                         no_args_is_help=True)

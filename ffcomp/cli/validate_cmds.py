@@ -10,15 +10,7 @@ import typer
 from rich.table import Table
 
 from ..pipeline import validate_flow as vf
-from .common import JsonOpt, ProfileOpt, app, console, err_console, load_profile_opt, parse_triple
-from .common import print_json as _print_json
-
-
-def print_json(obj) -> None:
-    """JSON on stdout with NaN/Infinity as null (valid JSON)."""
-    from ..report.json_safe import finite_json
-
-    _print_json(finite_json(obj))
+from .common import JsonOpt, ProfileOpt, app, console, err_console, load_profile_opt, parse_triple, print_json
 
 DataArg = Annotated[Path, typer.Argument(help="Directory of FRF files (FRF_FORMAT *.csv, UFF *.uff), or one file.")]
 NoiseOpt = Annotated[Optional[float], typer.Option(
