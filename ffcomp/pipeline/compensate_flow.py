@@ -495,12 +495,9 @@ def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
 
 def _moves_where(move_index: np.ndarray, moves: dict, pred) -> np.ndarray:
     """Mask of the samples whose planned move satisfies ``pred``."""
-    out = np.zeros(len(move_index), bool)
-    for mi in np.unique(move_index):
-        mv = moves.get(int(mi))
-        if mv is not None and pred(mv):
-            out[move_index == mi] = True
-    return out
+    uniq, inv = np.unique(move_index, return_inverse=True)
+    hit = np.array([(mv := moves.get(int(mi))) is not None and bool(pred(mv)) for mi in uniq.tolist()], bool)
+    return hit[inv.reshape(-1)] if len(hit) else np.zeros(len(move_index), bool)
 
 
 def _holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
