@@ -1,0 +1,192 @@
+"""Pinning the command where a G-code file cannot move it: a local least-squares repair.
+
+A G-code file cannot move the nozzle during an extruder-only move (a retraction) or a dwell, and a
+firmware limit (``max_z_accel``, the extruder's caps) may forbid a command that accelerates harder
+than the plan on some moves.  On those samples (*pins*) the command must equal the plan.  Cutting
+the unconstrained command ``c*`` there would excite the machine; instead the command around each
+pinned stretch is re-solved:
+
+    c = c* + Delta,  Delta = q - c* on pinned samples,  Delta = 0 outside the window,
+
+and the free ``Delta`` (piecewise linear through knots every ``knot_samples``, continuous into the
+pinned values) minimises the model's response to ``Delta`` over the window and a ringing tail,
+plus a small penalty on its second difference:
+
+    min || H * Delta ||^2 + smooth ||D2 Delta||^2
+
+``H`` is the pulse response, carriage command -> carriage position, of the model linearised at the
+window's pose (first-order hold, as the firmware moves linearly between points), cached on a pose
+grid.  Since ``c*`` already makes the output follow the reference, the response to ``Delta`` is
+the whole change of the tracking error.  Pure numerics: no files, no G-code.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.signal import fftconvolve
+
+from ..model.lpv import LpvModel, state_space
+
+__all__ = ["RepairConfig", "PulseResponses", "repair_window", "pinned_clusters"]
+
+
+@dataclass(frozen=True)
+class RepairConfig:
+    """Settings of the pin repair (documented defaults).
+
+    margin_s : free command before and after a pinned stretch that the repair may change, s
+    tail_s : response after the window that counts in the objective (the ringing), s
+    knot_samples : spacing of the correction's knots, samples
+    smooth : weight of the correction's second difference against the response (both in m)
+    cell_xy_m, cell_z_m : pose grid of the cached pulse responses, m
+    """
+
+    margin_s: float = 0.06
+    tail_s: float = 0.3
+    knot_samples: int = 3
+    smooth: float = 1e-2
+    cell_xy_m: float = 0.02
+    cell_z_m: float = 0.05
+
+
+class PulseResponses:
+    """Pulse responses ``H[k]`` (L, 3, 3) of the model in the joint frame, per pose cell."""
+
+    def __init__(self, model: LpvModel, dt_s: float, cfg: RepairConfig = RepairConfig()):
+        self.model, self.dt, self.cfg = model, dt_s, cfg
+        self.L = max(int(round(cfg.tail_s / dt_s)), 8)
+        self.cache: dict[tuple, np.ndarray] = {}
+
+    def key(self, xyz_m: np.ndarray) -> tuple:
+        c = self.cfg
+        return (int(np.floor(xyz_m[0] / c.cell_xy_m + 0.5)), int(np.floor(xyz_m[1] / c.cell_xy_m + 0.5)),
+                int(np.floor(xyz_m[2] / c.cell_z_m + 0.5)))
+
+    def at(self, xyz_m: np.ndarray) -> np.ndarray:
+        k = self.key(xyz_m)
+        H = self.cache.get(k)
+        if H is None:
+            c = self.cfg
+            pose = np.array([k[0] * c.cell_xy_m, k[1] * c.cell_xy_m, max(k[2] * c.cell_z_m, 0.0)])
+            try:
+                sys_ = state_space(self.model, pose, frame="joint", dt_s=self.dt, method="foh")
+            except ValueError:  # a cell centre outside the workspace: the pose itself
+                sys_ = state_space(self.model, np.asarray(xyz_m, float), frame="joint", dt_s=self.dt, method="foh")
+            A, B, C, D = (np.asarray(x) for x in (sys_.A, sys_.B, sys_.C, sys_.D))
+            H = np.empty((self.L, 3, 3))
+            H[0] = D
+            x = B.copy()
+            for i in range(1, self.L):
+                H[i] = C @ x
+                x = A @ x
+            if len(self.cache) > 4096:
+                self.cache.clear()
+            self.cache[k] = H
+        return H
+
+
+def pinned_clusters(pin: np.ndarray, gap: int) -> list[tuple[int, int]]:
+    """Pinned runs ``[a, b)`` of a mask, merged when fewer than ``gap`` free samples separate them."""
+    p = np.asarray(pin, bool)
+    if not p.any():
+        return []
+    d = np.diff(np.r_[0, p.astype(np.int8), 0])
+    st, en = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
+    out = [[int(st[0]), int(en[0])]]
+    for a, b in zip(st[1:].tolist(), en[1:].tolist()):
+        if a - out[-1][1] < gap:
+            out[-1][1] = b
+        else:
+            out.append([a, b])
+    return [(a, b) for a, b in out]
+
+
+def _interp_matrix(pin: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of the window's samples from its knots.
+
+    Knots: every pinned sample (fixed), zero knots just outside the window (fixed), and free knots
+    every ``m`` samples in each free run.  Returns ``S`` (n, n_free) and ``F`` (n, n) mapping the
+    free knot values and the pinned samples' values (zero where not pinned) to all samples.
+    """
+    n = len(pin)
+    free_pos = []
+    k = 0
+    while k < n:
+        if pin[k]:
+            k += 1
+            continue
+        b = k
+        while b < n and not pin[b]:
+            b += 1
+        # free run [k, b): knots spread over it, ends included only when next to a window edge
+        cnt = max(int(np.ceil((b - k) / m)), 1)
+        pos = np.unique(np.round(np.linspace(k, b - 1, cnt + 1 if cnt > 1 else 1)).astype(int))
+        free_pos.extend(pos.tolist())
+        k = b
+    free_pos = np.array(sorted(set(free_pos)), int)
+    fixed_pos = np.r_[-1, np.nonzero(pin)[0], n]
+    kp = np.r_[free_pos, fixed_pos]
+    is_free = np.r_[np.ones(len(free_pos), bool), np.zeros(len(fixed_pos), bool)]
+    order = np.argsort(kp, kind="stable")
+    kp, is_free = kp[order], is_free[order]
+    col = np.full(len(kp), -1)
+    col[is_free] = np.arange(is_free.sum())
+    samp = np.arange(n)
+    j = np.searchsorted(kp, samp, side="right")  # kp[j-1] <= k < kp[j]
+    left, right = kp[j - 1], kp[np.minimum(j, len(kp) - 1)]
+    span = np.maximum(right - left, 1)
+    wr = (samp - left) / span
+    wl = 1.0 - wr
+    S = np.zeros((n, len(free_pos)))
+    F = np.zeros((n, n))
+    for knot_idx, w in ((j - 1, wl), (np.minimum(j, len(kp) - 1), wr)):
+        pos = kp[knot_idx]
+        fr = is_free[knot_idx]
+        S[samp[fr], col[knot_idx[fr]]] += w[fr]
+        inside = ~fr & (pos >= 0) & (pos < n)
+        F[samp[inside], pos[inside]] += w[inside]
+    return S, F
+
+
+def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, cfg: RepairConfig = RepairConfig(),
+                  cache: dict | None = None) -> np.ndarray:
+    """The repaired command of one window: ``c`` (n, 3) with ``q`` on the pinned samples.
+
+    ``H`` (L, 3, 3): pulse response at the window's pose; the correction vanishes beyond the
+    window.  ``cache``: optional dict for the factorised normal equations of a repeated window
+    shape (the same pin pattern at the same pose cell), keyed by the caller.
+    """
+    n = len(c)
+    pin = np.asarray(pin, bool)
+    fixed = np.where(pin[:, None], q - c, 0.0)
+    S, F = _interp_matrix(pin, cfg.knot_samples)
+    o = F @ fixed  # (n, 3): the pinned values, ramps towards the free knots excluded (they are in S)
+    nf = S.shape[1]
+    if nf == 0:
+        return c + o
+    # responses of the free knots' hats and of the fixed part, per (output i, input j)
+    R = np.stack([fftconvolve(S, H[:, i, j][:, None], axes=0) for i in range(3) for j in range(3)])
+    Yo = np.stack([sum(np.convolve(H[:, i, j], o[:, j]) for j in range(3)) for i in range(3)], 1)
+    rows = R.shape[1]
+    Phi = np.zeros((3 * rows, 3 * nf))
+    for i in range(3):
+        for j in range(3):
+            Phi[i * rows:(i + 1) * rows, j * nf:(j + 1) * nf] = R[3 * i + j]
+    # second difference of the samples (zeros beyond the window)
+    D2S = np.diff(np.vstack([np.zeros((1, nf)), S, np.zeros((1, nf))]), 2, axis=0)
+    D2o = np.diff(np.vstack([np.zeros((1, 3)), o, np.zeros((1, 3))]), 2, axis=0)
+    G = Phi.T @ Phi
+    Gs = D2S.T @ D2S
+    for j in range(3):
+        G[j * nf:(j + 1) * nf, j * nf:(j + 1) * nf] += cfg.smooth * Gs
+    G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
+    rhs = -(Phi.T @ Yo.T.reshape(-1))
+    for j in range(3):
+        rhs[j * nf:(j + 1) * nf] -= cfg.smooth * (D2S.T @ D2o[:, j])
+    z = cho_solve(cho_factor(G, lower=True, check_finite=False), rhs, check_finite=False).reshape(3, nf).T
+    out = c + o + S @ z
+    out[pin] = q[pin]
+    return out
