@@ -29,8 +29,10 @@ def compensate_cmd(
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep: compensated z everywhere; hold: keep planned "
                                         "z on layer moves (firmware with low max_z_accel); auto: planned z on "
                                         "moves that travel in z.")] = "keep",
-    pin_holds: Annotated[bool, typer.Option("--pin-holds/--no-pin-holds", help="Keep the command on the "
-                                            "reference during extruder-only moves and dwells.")] = False,
+    pin_holds: Annotated[bool, typer.Option("--pin-holds/--catch-up-holds", help="Keep the command on the plan "
+                                            "during extruder-only moves, dwells and z-hops after them, and "
+                                            "re-solve it around them (default); or let it move on and catch "
+                                            "up after them.")] = True,
     shape_steps: Annotated[bool, typer.Option("--shape-steps/--no-shape-steps", help="Step streams only: "
                                               "choose the steps quantisation-aware (error feedback on a 10x "
                                               "finer grid: the step error moves to ~5 kHz).")] = False,
@@ -93,7 +95,7 @@ def compensate_cmd(
         return
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
-                             pin_holds=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
+                             pin_repair=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
                              unknown_policy=unknown_commands, plan_where_limited=plan_where_limited)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
@@ -192,6 +194,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "self_check_abs_max_um": ("self-check: max deviation at the same absolute time", "{:.1f} um"),
         "header_accel_mm_s2": ("firmware ACCEL the output sets", "{:.0f} mm/s^2"),
         "clamped": ("samples clamped to the workspace", "{}"),
+        "pinned_samples": ("samples held on the plan (retractions, dwells, z-hops)", "{}"),
+        "pin_windows": ("windows re-solved around them", "{}"),
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
         "segments": ("G1 segments written", "{}"),

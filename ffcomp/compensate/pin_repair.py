@@ -12,7 +12,11 @@ and the free ``Delta`` (piecewise linear through knots every ``knot_samples``, c
 pinned values) minimises the model's response to ``Delta`` over the window and a ringing tail,
 plus a small penalty on its second difference:
 
-    min || H * Delta ||^2 + smooth ||D2 Delta||^2
+    min || H * Delta ||^2 / err^2 + sum_k |W J a_k|^2,   a_k = D2 Delta_k / dt^2
+
+(``J`` the Jacobian at the window's pose: the penalty is on the nozzle's acceleration, with its own
+scale for z, because Klipper caps a segment's acceleration by ``max_z_accel * d/|dz|``: a correction
+that jerks the nozzle in z would make the firmware run late)
 
 ``H`` is the pulse response, carriage command -> carriage position, of the model linearised at the
 window's pose (first-order hold, as the firmware moves linearly between points), cached on a pose
@@ -40,16 +44,21 @@ class RepairConfig:
     margin_s : free command before and after a pinned stretch that the repair may change, s
     tail_s : response after the window that counts in the objective (the ringing), s
     knot_samples : spacing of the correction's knots, samples
-    smooth : weight of the correction's second difference against the response (both in m)
+    err_m : response error that costs as much as ...
+    accel_xy_m_s2, accel_z_m_s2 : ... this much nozzle acceleration of the correction in one sample
+        (in XY and in z), m/s^2
     cell_xy_m, cell_z_m : pose grid of the cached pulse responses, m
     """
 
     margin_s: float = 0.06
     tail_s: float = 0.3
     knot_samples: int = 3
-    smooth: float = 1e-2
+    err_m: float = 1e-6
+    accel_xy_m_s2: float = 0.5
+    accel_z_m_s2: float = 0.1
     cell_xy_m: float = 0.02
     cell_z_m: float = 0.05
+    pin_z_after_hold: bool = True
 
 
 class PulseResponses:
@@ -151,15 +160,13 @@ def _interp_matrix(pin: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     return S, F
 
 
-def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, cfg: RepairConfig = RepairConfig(),
-                  cache: dict | None = None) -> np.ndarray:
+def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float,
+                  cfg: RepairConfig = RepairConfig()) -> np.ndarray:
     """The repaired command of one window: ``c`` (n, 3) with ``q`` on the pinned samples.
 
-    ``H`` (L, 3, 3): pulse response at the window's pose; the correction vanishes beyond the
-    window.  ``cache``: optional dict for the factorised normal equations of a repeated window
-    shape (the same pin pattern at the same pose cell), keyed by the caller.
+    ``H`` (L, 3, 3): pulse response at the window's pose; ``J`` (3, 3): the Jacobian dX/dq there;
+    ``dt_s``: the sample time.  The correction vanishes beyond the window.
     """
-    n = len(c)
     pin = np.asarray(pin, bool)
     fixed = np.where(pin[:, None], q - c, 0.0)
     S, F = _interp_matrix(pin, cfg.knot_samples)
@@ -178,14 +185,12 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     # second difference of the samples (zeros beyond the window)
     D2S = np.diff(np.vstack([np.zeros((1, nf)), S, np.zeros((1, nf))]), 2, axis=0)
     D2o = np.diff(np.vstack([np.zeros((1, 3)), o, np.zeros((1, 3))]), 2, axis=0)
-    G = Phi.T @ Phi
-    Gs = D2S.T @ D2S
-    for j in range(3):
-        G[j * nf:(j + 1) * nf, j * nf:(j + 1) * nf] += cfg.smooth * Gs
+    # nozzle acceleration of the correction, weighted per axis: P = J^T W J / dt^4
+    Wd = np.array([1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_z_m_s2**2])
+    P = (J.T * Wd) @ J / dt_s**4
+    G = Phi.T @ Phi / cfg.err_m**2 + np.kron(P, D2S.T @ D2S)
     G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
-    rhs = -(Phi.T @ Yo.T.reshape(-1))
-    for j in range(3):
-        rhs[j * nf:(j + 1) * nf] -= cfg.smooth * (D2S.T @ D2o[:, j])
+    rhs = -(Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2 - (D2S.T @ D2o @ P.T).T.reshape(-1)
     z = cho_solve(cho_factor(G, lower=True, check_finite=False), rhs, check_finite=False).reshape(3, nf).T
     out = c + o + S @ z
     out[pin] = q[pin]

@@ -146,6 +146,8 @@ class GcodeWriter:
         self.done_moves: set[int] = set()  # planned move indices written
         self.prev_v = None
         self.after_hold = False
+        #: write extruder-only moves up to EXTRUDE_SPARE_S faster (the command moved on during them)
+        self.fast_extrude = True
         self.nlines = 0  # body lines written
         #: (body line number, first sample, last sample, catch-up flag) of every XYZ segment, for the
         #: self-check: int64 rows written to ``segment_table`` (a binary file, so memory stays
@@ -304,7 +306,7 @@ class GcodeWriter:
             if kind != MOVE and mv is not None:
                 first = mv.index not in self.done_moves
                 dur = mv.duration_s
-                if first and kind == EXTRUDE and self.chain is not None:
+                if first and kind == EXTRUDE and self.chain is not None and self.fast_extrude:
                     dur = self._fast_extrude(ch, r, mv)
                 pend += (dur if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:

@@ -19,6 +19,7 @@ from typing import Callable
 import numpy as np
 
 from ..compensate.inverse import InverseConfig
+from ..compensate.pin_repair import RepairConfig
 from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits, segment_limits
@@ -34,6 +35,7 @@ from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, s
 from ..kinematics import carriage_rates, forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings
+from .pin_stream import PinStats, pin_repaired
 from .predictor import Predictor
 from .self_check import self_check
 
@@ -70,8 +72,8 @@ class CompensateOptions:
     lenient : malformed G-code lines become counted warnings
     accel_factor : the header's ACCEL is this times the profile's max_accel (at least 100,000 mm/s^2):
         the segments carry the timing, so the firmware should change speed between them at once
-    pin_holds : keep the command on the reference while the plan holds the nozzle still (extruder-only
-        moves, dwells): a G-code file cannot move the nozzle during those lines
+    pin_holds : (older, drive stage only) penalise the command's distance from the reference while the
+        plan holds the nozzle still; superseded by ``pin_repair``
     corner_velocity_mm_s : the SQUARE_CORNER_VELOCITY the header sets: the compensated path already
         slows where the plan slows, so the firmware must not slow it again at every small turn
     start_mm : (x, y, z) where the toolhead stands before a file that moves before homing (``--start``);
@@ -100,6 +102,11 @@ class CompensateOptions:
     #: moves the extruder's limits bind, and the z of z-hops right after a hold, follow the plan
     #: (see :class:`LimitBound`): the firmware could not run the compensated command on time there
     plan_where_limited: bool = True
+    #: the command equals the plan wherever a G-code file cannot move it (extruder-only moves,
+    #: dwells, the moves of ``plan_where_limited``) and is re-solved around those stretches
+    #: (:mod:`ffcomp.compensate.pin_repair`), instead of moving on and catching up after them
+    pin_repair: bool = True
+    repair: RepairConfig = field(default_factory=RepairConfig)
 
 
 @dataclass
@@ -153,6 +160,11 @@ class CompensationSummary:
     self_check_abs_max_um: float | None = None
     #: samples written from the plan (uncompensated) because the firmware's limits bind there
     plan_fallback_samples: int = 0
+    #: pin repair (:mod:`ffcomp.compensate.pin_repair`): windows re-solved, samples held on the plan,
+    #: largest change of the command (um)
+    pin_windows: int = 0
+    pinned_samples: int = 0
+    pin_max_change_um: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -245,6 +257,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer.start_travel_mm_s = start.travel_mm_s
             pred = Predictor(model, dt) if opts.predict else None
             bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
+            pin_stats = PinStats()
             k_written = 0
             last_qc = None
 
@@ -266,6 +279,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 dense = None
                 if bound is not None:
                     w, wz = bound.weights(meta["move_index"], moves)
+                    if opts.pin_repair:  # those moves are pinned: the plan, sample by sample
+                        w = (w >= 1.0).astype(float)
                     dense = (w > 0) | (wz > 0)
                     if dense.any():
                         xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
@@ -298,9 +313,24 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 if progress is not None:
                     progress(int(meta["lineno"][-1]), total_lines)
 
-            for qc, meta in compensated_stream(plan, moves, profile, model, icfg, opts, summ, src):
+            stream = compensated_stream(plan, moves, profile, model, icfg, opts, summ, src)
+            if opts.pin_repair:
+
+                def pins(meta):
+                    p = _holds(meta["move_index"], moves)
+                    if bound is not None:
+                        p |= bound.mask(meta["move_index"], moves)
+                        if opts.repair.pin_z_after_hold:
+                            p |= _moves_where(meta["move_index"], moves,
+                                              lambda mv: _z_hop(mv) and bound.z_after_hold(mv, moves))
+                    return p
+
+                stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M)
+            for qc, meta in stream:
                 emit(qc, meta)
             writer.finish()
+        summ.pin_windows, summ.pinned_samples = pin_stats.windows, pin_stats.pinned_samples
+        summ.pin_max_change_um = pin_stats.max_change_m * 1e6
         summ.warnings += plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
         _count_commands(summ, plan.parser.counts)
         if start_warning:
@@ -576,6 +606,12 @@ class _NoAccel:
         self.__dict__.update(lim.__dict__)
         self.accel = self.max_velocity = self.max_z_accel = self.max_z_velocity = float("inf")
         self.slow_xy2 = self.very_slow_xy2 = float("inf")
+
+
+def _z_hop(mv) -> bool:
+    """A move that travels more in z than in XY (a z-hop, a layer change at one XY point)."""
+    d = np.abs(np.asarray(mv.end_mm[:3]) - np.asarray(mv.start_mm[:3]))
+    return bool(d[2] > 1e-9 and d[2] >= np.hypot(d[0], d[1]))
 
 
 def _z_moving(move_index: np.ndarray, moves: dict) -> np.ndarray:

@@ -19,6 +19,9 @@ __all__ = ["self_check", "shape_limit_um", "TIMING_NOTE_MS"]
 TIMING_NOTE_MS = 0.2
 
 
+_TRACE = None  # a list to collect (sample time, lateness, line) per batch (debugging aid)
+
+
 def self_check(path: str, qfile: str, profile, geom, summ, opts,
                 segfile: str | None = None, head_len: int = 0) -> None:
     """Re-plan the output with the firmware-faithful planner and compare carriages with the intent.
@@ -100,6 +103,8 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
+        if _TRACE is not None:
+            _TRACE.append((kb * dt, late, R[:, 0]))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)

@@ -1,0 +1,111 @@
+"""The pin repair (:mod:`ffcomp.compensate.pin_repair`) on the compensated stream, in bounded memory.
+
+Chunks of compensated carriage commands with their per-sample metadata go in; the same chunks (the
+same lengths: a chunk boundary may be a stream boundary for the caller) come out, a little later,
+with the command equal to the plan on pinned samples (extruder-only moves, dwells, moves the
+firmware's limits bind, z-hops right after a retraction) and re-solved around them.  Rows are held back until
+every window that could reach them is complete (``margin`` samples after the last pinned run), so
+the delay is a window plus a margin; a homing jump (a new stream) closes a window.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Callable, Iterable, Iterator
+
+import numpy as np
+
+from ..compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
+from ..kinematics import jacobian
+
+__all__ = ["PinStats", "pin_repaired"]
+
+
+class PinStats:
+    """What the repair did: windows solved, pinned samples, largest change of the command (m)."""
+
+    def __init__(self):
+        self.windows = 0
+        self.pinned_samples = 0
+        self.max_change_m = 0.0
+
+
+def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
+                 cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3
+                 ) -> Iterator[tuple[np.ndarray, dict]]:
+    """Yield ``(q_cmd, meta)`` chunks with the pinned samples held on the plan (``meta["q"]``).
+
+    ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives.
+    """
+    stats = stats if stats is not None else PinStats()
+    responses = PulseResponses(model, dt_s, cfg)
+    geom = model.geometry
+    M = max(int(round(cfg.margin_s / dt_s)), 1)
+    buf_q = np.zeros((0, 3))
+    buf_meta: dict[str, np.ndarray] | None = None
+    buf_pin = np.zeros(0, bool)
+    repaired_upto = 0  # buffer rows before this belong to clusters already repaired
+    sizes: deque[int] = deque()  # lengths of the chunks in the buffer
+
+    def solve(final: bool) -> int:
+        """Repair the clusters whose windows are complete; returns how many rows are final."""
+        nonlocal repaired_upto
+        n = len(buf_q)
+        # stream boundaries (homing jumps): windows never cross them
+        qref = buf_meta["q"]
+        jumps = np.nonzero(np.max(np.abs(np.diff(qref, axis=0)), axis=1) > jump_m)[0] + 1 if n > 1 else []
+        bounds = np.r_[0, jumps, n].astype(int)
+        safe = n if final else max(n - M, 0)
+        for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+            if not buf_pin[s0:s1].any():
+                continue
+            for a, b in pinned_clusters(buf_pin[s0:s1], 2 * M):
+                a, b = a + s0, b + s0
+                if not final and s1 == n and b + M > n:  # the window (or the run) is not all here yet
+                    return max(min(safe, a - M), 0)
+                if a < repaired_upto:
+                    continue
+                w0, w1 = max(a - M, s0), min(b + M, s1)
+                old = buf_q[w0:w1]
+                pose = buf_meta["xyz"][(a + b) // 2]
+                new = repair_window(responses.at(pose), old, qref[w0:w1], buf_pin[w0:w1], jacobian(geom, pose),
+                                    dt_s, cfg)
+                stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
+                stats.windows += 1
+                stats.pinned_samples += int(buf_pin[a:b].sum())
+                # the plan comes to rest between two samples: the last point before a pinned run is
+                # already the rest position, so the firmware stands there when the hold begins
+                # (rather than covering the last sub-sample of motion from rest after it)
+                seg = buf_pin[w0:w1]
+                starts = np.nonzero(seg[1:] & ~seg[:-1])[0]  # new[starts] is free, new[starts + 1] pinned
+                new[starts] = new[starts + 1]
+                buf_q[w0:w1] = new
+                repaired_upto = b
+        return safe
+
+    for qc, meta in chunks:
+        pin = np.asarray(pin_fn(meta), bool)
+        buf_q = np.vstack([buf_q, qc])
+        buf_pin = np.concatenate([buf_pin, pin])
+        if buf_meta is None:
+            buf_meta = {k: np.asarray(v) for k, v in meta.items()}
+        else:
+            buf_meta = {k: np.concatenate([buf_meta[k], meta[k]]) for k in buf_meta}
+        sizes.append(len(qc))
+        safe = solve(final=False)
+        # whole chunks only, as they came (a chunk boundary may be a stream boundary for the caller)
+        while sizes and sizes[0] <= safe:
+            k = sizes.popleft()
+            out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
+            buf_q, buf_pin = buf_q[k:], buf_pin[k:]
+            buf_meta = {key: v[k:] for key, v in buf_meta.items()}
+            repaired_upto = max(repaired_upto - k, 0)
+            safe -= k
+            yield out_q, out_meta
+    if buf_meta is not None and len(buf_q):
+        solve(final=True)
+        while sizes:
+            k = sizes.popleft()
+            yield buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
+            buf_q = buf_q[k:]
+            buf_meta = {key: v[k:] for key, v in buf_meta.items()}
