@@ -32,6 +32,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.signal import fftconvolve
 
+from ..kinematics import reachable
 from ..model.lpv import LpvModel, state_space
 
 __all__ = ["RepairConfig", "PulseResponses", "repair_window", "pinned_clusters"]
@@ -43,6 +44,7 @@ class RepairConfig:
 
     margin_s : free command before and after a pinned stretch that the repair may change, s
     tail_s : response after the window that counts in the objective (the ringing), s
+    tail_stride : every how many samples of that tail count (it is smooth)
     knot_samples : spacing of the correction's knots, samples
     err_m : response error that costs as much as ...
     accel_xy_m_s2, accel_z_m_s2 : ... this much nozzle acceleration of the correction in one sample
@@ -50,7 +52,7 @@ class RepairConfig:
     cell_xy_m, cell_z_m : pose grid of the cached pulse responses, m
     """
 
-    margin_s: float = 0.06
+    margin_s: float = 0.04
     tail_s: float = 0.3
     knot_samples: int = 3
     err_m: float = 1e-6
@@ -59,6 +61,9 @@ class RepairConfig:
     cell_xy_m: float = 0.02
     cell_z_m: float = 0.05
     pin_z_after_hold: bool = True
+    tail_stride: int = 3
+    edge_weight: float = 30.0
+    edge_samples: float = 3.0
 
 
 class PulseResponses:
@@ -74,16 +79,17 @@ class PulseResponses:
         return (int(np.floor(xyz_m[0] / c.cell_xy_m + 0.5)), int(np.floor(xyz_m[1] / c.cell_xy_m + 0.5)),
                 int(np.floor(xyz_m[2] / c.cell_z_m + 0.5)))
 
+    def centre(self, k: tuple, xyz_m: np.ndarray) -> np.ndarray:
+        """The pose a cell stands for: its centre, or ``xyz_m`` where the centre is unreachable."""
+        c = self.cfg
+        pose = np.array([k[0] * c.cell_xy_m, k[1] * c.cell_xy_m, max(k[2] * c.cell_z_m, 0.0)])
+        return pose if bool(reachable(self.model.geometry, pose)) else np.asarray(xyz_m, float)
+
     def at(self, xyz_m: np.ndarray) -> np.ndarray:
         k = self.key(xyz_m)
         H = self.cache.get(k)
         if H is None:
-            c = self.cfg
-            pose = np.array([k[0] * c.cell_xy_m, k[1] * c.cell_xy_m, max(k[2] * c.cell_z_m, 0.0)])
-            try:
-                sys_ = state_space(self.model, pose, frame="joint", dt_s=self.dt, method="foh")
-            except ValueError:  # a cell centre outside the workspace: the pose itself
-                sys_ = state_space(self.model, np.asarray(xyz_m, float), frame="joint", dt_s=self.dt, method="foh")
+            sys_ = state_space(self.model, self.centre(k, xyz_m), frame="joint", dt_s=self.dt, method="foh")
             A, B, C, D = (np.asarray(x) for x in (sys_.A, sys_.B, sys_.C, sys_.D))
             H = np.empty((self.L, 3, 3))
             H[0] = D
@@ -160,38 +166,81 @@ def _interp_matrix(pin: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     return S, F
 
 
-def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float,
-                  cfg: RepairConfig = RepairConfig()) -> np.ndarray:
-    """The repaired command of one window: ``c`` (n, 3) with ``q`` on the pinned samples.
+class _Operator:
+    """The parts of one window's least squares that depend only on its pin pattern and pose cell."""
 
-    ``H`` (L, 3, 3): pulse response at the window's pose; ``J`` (3, 3): the Jacobian dX/dq there;
-    ``dt_s``: the sample time.  The correction vanishes beyond the window.
-    """
-    pin = np.asarray(pin, bool)
-    fixed = np.where(pin[:, None], q - c, 0.0)
-    S, F = _interp_matrix(pin, cfg.knot_samples)
-    o = F @ fixed  # (n, 3): the pinned values, ramps towards the free knots excluded (they are in S)
-    nf = S.shape[1]
+    __slots__ = ("S", "F", "Phi", "keep", "D2S", "wrow", "P", "factor", "nf")
+
+
+def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: RepairConfig) -> _Operator:
+    op = _Operator()
+    n = len(pin)
+    op.S, op.F = _interp_matrix(pin, cfg.knot_samples)
+    nf = op.nf = op.S.shape[1]
     if nf == 0:
-        return c + o
-    # responses of the free knots' hats and of the fixed part, per (output i, input j)
-    R = np.stack([fftconvolve(S, H[:, i, j][:, None], axes=0) for i in range(3) for j in range(3)])
-    Yo = np.stack([sum(np.convolve(H[:, i, j], o[:, j]) for j in range(3)) for i in range(3)], 1)
+        return op
+    # responses of the free knots' hats per (output i, input j); the ringing after the window is
+    # smooth: every tail_stride-th row of it is enough
+    R = np.stack([fftconvolve(op.S, H[:, i, j][:, None], axes=0) for i in range(3) for j in range(3)])
+    op.keep = np.r_[np.arange(min(n, R.shape[1])), np.arange(n, R.shape[1], cfg.tail_stride)]
+    R = R[:, op.keep]
     rows = R.shape[1]
     Phi = np.zeros((3 * rows, 3 * nf))
     for i in range(3):
         for j in range(3):
             Phi[i * rows:(i + 1) * rows, j * nf:(j + 1) * nf] = R[3 * i + j]
-    # second difference of the samples (zeros beyond the window)
-    D2S = np.diff(np.vstack([np.zeros((1, nf)), S, np.zeros((1, nf))]), 2, axis=0)
-    D2o = np.diff(np.vstack([np.zeros((1, 3)), o, np.zeros((1, 3))]), 2, axis=0)
-    # nozzle acceleration of the correction, weighted per axis: P = J^T W J / dt^4
+    op.Phi = Phi
+    # nozzle acceleration of the correction (second difference, zeros beyond the window), weighted
+    # per axis: P = J^T W J / dt^4 ...
+    D2S = np.diff(np.vstack([np.zeros((1, nf)), op.S, np.zeros((1, nf))]), 2, axis=0)
     Wd = np.array([1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_z_m_s2**2])
-    P = (J.T * Wd) @ J / dt_s**4
-    G = Phi.T @ Phi / cfg.err_m**2 + np.kron(P, D2S.T @ D2S)
+    op.P = (J.T * Wd) @ J / dt_s**4
+    # ... and weighted up next to the pins: there the firmware starts from the plan's state (from
+    # rest after a hold) and cannot take a jump
+    idx = np.arange(n)
+    pins_at = np.nonzero(pin)[0]
+    if cfg.edge_weight > 0 and len(pins_at):
+        j = np.clip(np.searchsorted(pins_at, idx), 0, len(pins_at) - 1)
+        dist = np.minimum(np.abs(idx - pins_at[j]), np.abs(idx - pins_at[np.maximum(j - 1, 0)]))
+        wrow = 1.0 + cfg.edge_weight * np.exp(-dist / cfg.edge_samples)
+    else:
+        wrow = np.ones(n)
+    op.wrow = np.sqrt(wrow)[:, None]  # row k of the second difference is centred on sample k
+    op.D2S = D2S * op.wrow
+    G = Phi.T @ Phi / cfg.err_m**2 + np.kron(op.P, op.D2S.T @ op.D2S)
     G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
-    rhs = -(Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2 - (D2S.T @ D2o @ P.T).T.reshape(-1)
-    z = cho_solve(cho_factor(G, lower=True, check_finite=False), rhs, check_finite=False).reshape(3, nf).T
-    out = c + o + S @ z
+    op.factor = cho_factor(G, lower=True, check_finite=False)
+    return op
+
+
+def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float,
+                  cfg: RepairConfig = RepairConfig(), cache: dict | None = None, key=None) -> np.ndarray:
+    """The repaired command of one window: ``c`` (n, 3) with ``q`` on the pinned samples.
+
+    ``H`` (L, 3, 3): pulse response at the window's pose; ``J`` (3, 3): the Jacobian dX/dq there;
+    ``dt_s``: the sample time.  The correction vanishes beyond the window.  ``cache`` (a dict) and
+    ``key`` (the pose cell of ``H`` and ``J``): the factorised normal equations of a pin pattern seen
+    before at that cell are reused (retractions repeat).
+    """
+    pin = np.asarray(pin, bool)
+    op = None
+    if cache is not None:
+        ck = (key, len(pin), np.packbits(pin).tobytes())
+        op = cache.get(ck)
+        if op is None:
+            if len(cache) > 512:
+                cache.clear()
+            op = cache[ck] = _operator(H, pin, J, dt_s, cfg)
+    else:
+        op = _operator(H, pin, J, dt_s, cfg)
+    fixed = np.where(pin[:, None], q - c, 0.0)
+    o = op.F @ fixed  # (n, 3): the pinned values, ramps towards the free knots excluded (they are in S)
+    if op.nf == 0:
+        return c + o
+    Yo = np.stack([sum(np.convolve(H[:, i, j], o[:, j]) for j in range(3)) for i in range(3)], 1)[op.keep]
+    D2o = np.diff(np.vstack([np.zeros((1, 3)), o, np.zeros((1, 3))]), 2, axis=0) * op.wrow
+    rhs = -(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2 - (op.D2S.T @ D2o @ op.P.T).T.reshape(-1)
+    z = cho_solve(op.factor, rhs, check_finite=False).reshape(3, op.nf).T
+    out = c + o + op.S @ z
     out[pin] = q[pin]
     return out

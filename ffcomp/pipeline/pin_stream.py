@@ -40,6 +40,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     stats = stats if stats is not None else PinStats()
     responses = PulseResponses(model, dt_s, cfg)
     geom = model.geometry
+    ops: dict = {}  # factorised windows by (pose cell, pin pattern)
+    jac: dict = {}  # Jacobian per pose cell
     M = max(int(round(cfg.margin_s / dt_s)), 1)
     buf_q = np.zeros((0, 3))
     buf_meta: dict[str, np.ndarray] | None = None
@@ -59,7 +61,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
             if not buf_pin[s0:s1].any():
                 continue
-            for a, b in pinned_clusters(buf_pin[s0:s1], 2 * M):
+            for a, b in pinned_clusters(buf_pin[s0:s1], M):
                 a, b = a + s0, b + s0
                 if not final and s1 == n and b + M > n:  # the window (or the run) is not all here yet
                     return max(min(safe, a - M), 0)
@@ -68,17 +70,25 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 w0, w1 = max(a - M, s0), min(b + M, s1)
                 old = buf_q[w0:w1]
                 pose = buf_meta["xyz"][(a + b) // 2]
-                new = repair_window(responses.at(pose), old, qref[w0:w1], buf_pin[w0:w1], jacobian(geom, pose),
-                                    dt_s, cfg)
+                key = responses.key(pose)
+                J = jac.get(key)
+                if J is None:
+                    J = jac[key] = jacobian(geom, responses.centre(key, pose))
+                new = repair_window(responses.at(pose), old, qref[w0:w1], buf_pin[w0:w1], J, dt_s, cfg,
+                                    cache=ops, key=key)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(buf_pin[a:b].sum())
                 # the plan comes to rest between two samples: the last point before a pinned run is
                 # already the rest position, so the firmware stands there when the hold begins
                 # (rather than covering the last sub-sample of motion from rest after it)
+                # (pinned runs where the plan stands still: holds, not pinned moves)
                 seg = buf_pin[w0:w1]
                 starts = np.nonzero(seg[1:] & ~seg[:-1])[0]  # new[starts] is free, new[starts + 1] pinned
-                new[starts] = new[starts + 1]
+                qw = qref[w0:w1]
+                nxt = np.minimum(starts + 2, len(qw) - 1)
+                still = np.max(np.abs(qw[nxt] - qw[starts + 1]), axis=1) < 1e-9
+                new[starts[still]] = new[starts[still] + 1]
                 buf_q[w0:w1] = new
                 repaired_upto = b
         return safe

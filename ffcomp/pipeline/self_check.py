@@ -104,7 +104,7 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
         if _TRACE is not None:
-            _TRACE.append((kb * dt, late, R[:, 0]))
+            _TRACE.append((kb * dt, late, R[:, 0], ka * dt, t0, dur))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
