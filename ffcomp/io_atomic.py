@@ -46,13 +46,17 @@ def make_temp(directory: str | os.PathLike, kind: str, suffix: str = "") -> tupl
     directory = os.fspath(directory) or "."
     for _ in range(100):
         path = os.path.join(directory, f"{TEMP_PREFIX}{kind}-{_HOST}-{os.getpid()}-{secrets.token_hex(4)}{suffix}")
+        # registered before it exists: a stop signal between the creation and the registration
+        # would otherwise leave the file behind (its handler runs between any two bytecodes)
+        _LIVE.add(path)
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
         except FileExistsError:
+            _LIVE.discard(path)  # someone else's file: never ours to remove
             continue
         except OSError as e:
+            _LIVE.discard(path)
             raise OutputError(directory, e, "cannot create a temporary file in the output directory") from e
-        _LIVE.add(path)
         return fd, path
     raise OutputError(directory, None, "cannot find a free temporary file name")
 
