@@ -316,14 +316,14 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             stream = compensated_stream(plan, moves, profile, model, icfg, opts, summ, src)
             if opts.pin_repair:
 
+                def pinned(mv) -> bool:
+                    if mv.kind != "move":  # extruder-only move or dwell
+                        return True
+                    return bound is not None and (bound.bound(mv) or (
+                        opts.repair.pin_z_after_hold and _z_hop(mv) and bound.z_after_hold(mv, moves)))
+
                 def pins(meta):
-                    p = _holds(meta["move_index"], moves)
-                    if bound is not None:
-                        p |= bound.mask(meta["move_index"], moves)
-                        if opts.repair.pin_z_after_hold:
-                            p |= _moves_where(meta["move_index"], moves,
-                                              lambda mv: _z_hop(mv) and bound.z_after_hold(mv, moves))
-                    return p
+                    return _moves_where(meta["move_index"], moves, pinned)
 
                 stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M)
             for qc, meta in stream:
