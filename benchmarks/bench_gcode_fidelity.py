@@ -61,7 +61,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="shorter files")
     ap.add_argument("--z-mode", default=None, help="CompensateOptions.z_mode (default: the default)")
-    ap.add_argument("--pin-holds", default=None, choices=["0", "1"], help="CompensateOptions.pin_holds")
+    ap.add_argument("--pin-holds", default=None, choices=["0", "1"],
+                    help="CompensateOptions.pin_repair (1, the default: the command pinned to the plan during "
+                         "holds and re-solved around them; 0: the older catch-up writer, --catch-up-holds)")
     ap.add_argument("--only", default=None, help="only files whose name contains this")
     ap.add_argument("--profiles", default="default,other_delta")
     a = ap.parse_args()
@@ -73,7 +75,7 @@ def main() -> None:
     if a.z_mode:
         extra["z_mode"] = a.z_mode
     if a.pin_holds:
-        extra["pin_holds"] = a.pin_holds == "1"
+        extra["pin_repair"] = a.pin_holds == "1"
     for pname, (prof, truth) in profiles.items():
         if pname not in a.profiles.split(","):
             continue
