@@ -99,6 +99,9 @@ class FbsStream:
         self.bounds = None  # (deviation m, velocity m/s, acceleration m/s^2) of the command, see set_bounds
         self.rvel = np.zeros((0, self.C))  # reference velocity and acceleration of each row (for the bounds)
         self.racc = np.zeros((0, self.C))
+        self.cacc = np.zeros(0)  # reference acceleration of the common mode (z) of each row, see set_common_accel_bound
+        self.cbound = None  # (limit m/s^2, share, reach samples)
+        self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self._qp_cache: dict = {}
         self._rows_cache: dict = {}
@@ -215,6 +218,22 @@ class FbsStream:
         self.bounds = (float(deviation), float(velocity), float(acceleration))
         self.cstride = int(stride)
 
+    def set_common_accel_bound(self, limit: float, share: float = 0.3, reach: int = 40) -> None:
+        """Bound the acceleration of the command's common mode where its reference comes near ``limit``.
+
+        A delta moves its nozzle in z by moving the three carriages together: the nozzle's z
+        acceleration is ``sum_i w_i q_i''`` with ``w`` the z row of ``dX/dq`` (``w_i >= 0``,
+        ``sum w_i = 1``), and Klipper caps it on every segment at ``max_z_accel``
+        (``max_z_accel * d/|dz|`` on the path acceleration).  The rows fed with ``common_acc``
+        (the reference's z acceleration, m/s^2) carry that rule: within ``reach`` samples of a row
+        whose ``|common_acc| >= share * limit`` (m/s^2), every channel's spline acceleration
+        ``s''`` is kept in ``[-A - a_z, A - a_z]`` with ``A = max(limit, |a_z|)`` (the reference's
+        own value where it exceeds the limit), which keeps the command's z acceleration
+        ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights.  Elsewhere only
+        :meth:`set_bounds` applies; needs :meth:`set_bounds` (the same OSQP solve).
+        """
+        self.cbound = (float(limit), float(share), int(reach))
+
     def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
         if not hasattr(self, "_shapes"):
@@ -225,6 +244,25 @@ class FbsStream:
         ok = (off >= 0) & (off < sup)
         oc = np.clip(off, 0, sup - 1)
         return tuple(np.where(ok, sh[oc], 0.0) for sh in self._shapes)
+
+    def _common_band(self, a: int, rows: int):
+        """The common-mode band of the window's rows ``[a, a + rows)`` (see
+        :meth:`set_common_accel_bound`): ``(lo, hi)`` (rows,) limits on the spline's acceleration
+        (m/s^2, +-inf where it does not apply), or None where no row of the window is near the limit."""
+        if self.cbound is None or rows <= 0:
+            return None
+        lim, share, reach = self.cbound
+        n = len(self.cacc)
+        i0, i1 = max(0, a - reach), min(n, a + rows + reach)
+        big = np.abs(self.cacc[i0:i1]) >= share * lim
+        if not big.any():
+            return None
+        cs = np.concatenate([[0], np.cumsum(big)])
+        i = np.arange(a, a + rows) - i0
+        act = cs[np.clip(i + reach + 1, 0, len(big))] - cs[np.clip(i - reach, 0, len(big))] > 0
+        az = self.cacc[a:a + rows]
+        A = np.maximum(lim, np.abs(az) * 1.0001)
+        return np.where(act, -A - az, -np.inf), np.where(act, A - az, np.inf)
 
     def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int) -> bool:
         """A cheap sufficient test that the window's command keeps its bounds.
@@ -247,8 +285,12 @@ class FbsStream:
         d2 = np.diff(d1, axis=0)
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
+        band = self._common_band(a, rows)
+        smax = np.max(np.abs(d2)) / h2
+        if band is not None and smax > float(np.min(np.minimum(-band[0], band[1]))):
+            return False
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
-                    and np.max(np.abs(d2)) / h2 + amax <= Acc)
+                    and smax + amax <= Acc)
 
     def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
         import osqp
@@ -277,7 +319,14 @@ class FbsStream:
         # never demand more than the reference or the committed past allow
         Vb = np.maximum(V, np.abs(vref) * 1.0001)
         Ab = np.maximum(Acc, np.abs(aref) * 1.0001)
-        bad = (np.abs(val) > D) | (np.abs(vel) > Vb) | (np.abs(acc) > Ab)
+        # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
+        a_lo, a_hi = -Ab - aref, Ab - aref
+        band = self._common_band(a, rows)
+        if band is not None:
+            a_lo = np.maximum(a_lo, band[0][r][:, None])
+            a_hi = np.minimum(a_hi, band[1][r][:, None])
+        s2 = acc - aref
+        bad = (np.abs(val) > D) | (np.abs(vel) > Vb) | (s2 < a_lo) | (s2 > a_hi)
         chans = np.nonzero(bad.any(axis=0))[0]
         if chans.size == 0:
             return c
@@ -310,13 +359,23 @@ class FbsStream:
         solver, gn, rn = entry
         out = c.copy()
         for ch in chans:
-            v0, a0 = vref[:, ch] + e1[:, ch], aref[:, ch] + e2[:, ch]
-            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - v0, -Ab[:, ch] - a0])
-            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, Ab[:, ch] - a0])
+            v0 = vref[:, ch] + e1[:, ch]
+            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - v0, a_lo[:, ch] - e2[:, ch]])
+            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, a_hi[:, ch] - e2[:, ch]])
             solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
             solver.warm_start(x=c[:, ch] / sc)
             res = solver.solve(raise_error=False)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
+            if band is not None and (not ok or res.x is None or not np.all(np.isfinite(res.x))):
+                # the committed past leaves no room for the common-mode band: the plain bounds only
+                self.band_dropped += 1
+                R = len(r)
+                lo[2 * R:] = -Ab[:, ch] - aref[:, ch] - e2[:, ch]
+                hi[2 * R:] = Ab[:, ch] - aref[:, ch] - e2[:, ch]
+                solver.update(l=lo / rn, u=hi / rn)
+                solver.warm_start(x=c[:, ch] / sc)
+                res = solver.solve(raise_error=False)
+                ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if not ok or res.x is None or not np.all(np.isfinite(res.x)):
                 raise SolverError(
                     f"OSQP could not keep the command within its bounds in the window starting at t = "
@@ -348,9 +407,12 @@ class FbsStream:
         self.cj0 = keep_j
         return out
 
-    def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None) -> np.ndarray:
-        """Add target rows (and optionally a mask of rows where the spline must vanish); returns
-        spline values of samples that became final (in order)."""
+    def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None,
+             common_acc=None) -> np.ndarray:
+        """Add target rows (and optionally a mask of rows where the spline must vanish, the
+        reference's velocity and acceleration per channel for :meth:`set_bounds`, m/s and m/s^2,
+        and its common-mode acceleration (rows,) for :meth:`set_common_accel_bound`, m/s^2);
+        returns spline values of samples that became final (in order)."""
         target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
@@ -359,6 +421,8 @@ class FbsStream:
         ra = z if ref_acc is None else np.asarray(ref_acc, float).reshape(-1, self.C)
         self.rvel = np.concatenate([self.rvel, rv])
         self.racc = np.concatenate([self.racc, ra])
+        ca = np.zeros(len(target)) if common_acc is None else np.asarray(common_acc, float).reshape(-1)
+        self.cacc = np.concatenate([self.cacc, ca])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -383,7 +447,20 @@ class FbsStream:
             self.pin = self.pin[cut:]
             self.rvel = self.rvel[cut:]
             self.racc = self.racc[cut:]
+            self.cacc = self.cacc[cut:]
             self.off += cut
+
+
+def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+    """The nozzle's z acceleration (m/s^2) from the carriages' (N, 3), to first order: ``sum_i w_i
+    q_i''`` with ``w`` the z row of the Jacobian ``dX/dq`` at the poses ``xyz_m`` (N, 3), m (the
+    arms' turning rates add ``O(v^2 / h)``, under 1 % of the limits at printing speeds)."""
+    from ..kinematics import jacobian
+
+    if len(xyz_m) == 0:
+        return np.zeros(0)
+    w = jacobian(geom, xyz_m)[:, 2, :]
+    return np.einsum("ni,ni->n", w, qdd)
 
 
 def _chol_to_inv(factor) -> np.ndarray:
@@ -448,10 +525,15 @@ class StreamingInverse:
                                         channels=3 if self.shared_drive else 1))
         for i in range(3):
             self.dfilt.append(DriveFilter(*params[i], dt))
+        self.zbound = cfg.bounds is not None and cfg.z_accel_bound is not None
         if cfg.bounds is not None:
             for d in self.drive:
                 d.set_bounds(*cfg.bounds)
-        self.dbuf = np.zeros((0, 6))  # reference carriage velocity and acceleration of rows in qbuf_u
+                if self.zbound:
+                    d.set_common_accel_bound(cfg.z_accel_bound, cfg.z_bound_share,
+                                             int(round(cfg.z_bound_reach_s / dt)))
+        # reference carriage velocity and acceleration of rows in qbuf_u, and the nozzle's z acceleration
+        self.dbuf = np.zeros((0, 7))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -472,7 +554,8 @@ class StreamingInverse:
         """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
-        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
+        zacc = nozzle_z_accel(self.model.geometry, X, qdd) if self.zbound else np.zeros(len(q))
+        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None]])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -497,13 +580,13 @@ class StreamingInverse:
         """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
         tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
         if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:])
+            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6])
             if final:
                 e = np.concatenate([e, self.drive[0].finish()])
             return [e[:, i] for i in range(3)]
         eps = []
         for i in range(3):
-            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i])[:, 0]
+            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i], dn[:, 6])[:, 0]
             if final:
                 e = np.concatenate([e, self.drive[i].finish()[:, 0]])
             eps.append(e)

@@ -245,6 +245,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             writer.start_travel_mm_s = start.travel_mm_s
             pred = Predictor(model, dt) if opts.predict else None
             bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
+            zlim = ZLimited(chain) if chain is not None else None
             k_written = 0
             last_qc = None
 
@@ -272,6 +273,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                         xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
                         fix |= dense
                         summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
+                if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
+                    zd = zlim.dense(meta["move_index"], moves)
+                    dense = zd if dense is None else (dense | zd)
                 # the firmware refuses positions outside its limits: a correction that pokes past
                 # them (at z_max after homing, at the rim) is clamped to the boundary
                 cl = _clamp_to_workspace(xyz, geom)
@@ -479,11 +483,15 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
 
 
 def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:
-    """The inverse settings of a run: the options' plus the command bounds from the profile."""
+    """The inverse settings of a run: the options' plus the command bounds from the profile (and,
+    for Klipper, its ``max_z_accel``: the firmware caps the z acceleration of every segment there)."""
     lim = profile.limits
     bounds = opts.inverse.bounds or (lim.max_correction_mm * 1e-3, lim.max_carriage_velocity_mm_s * 1e-3,
                                      lim.max_carriage_accel_mm_s2 * 1e-3)
-    return InverseConfig(**{**asdict(opts.inverse), "method": opts.method, "bounds": bounds})
+    zb = opts.inverse.z_accel_bound
+    if zb is None and lim.planner == "klipper":
+        zb = lim.max_z_accel_mm_s2 * 1e-3
+    return InverseConfig(**{**asdict(opts.inverse), "method": opts.method, "bounds": bounds, "z_accel_bound": zb})
 
 
 def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
@@ -567,6 +575,40 @@ class LimitBound:
         d_prev = np.where(j > 0, idx - on[np.maximum(j - 1, 0)], n)
         d = np.minimum(d_next, d_prev).astype(float)
         return np.where(d < blend, 0.5 * (1.0 + np.cos(np.pi * d / blend)), 0.0)
+
+
+class ZLimited:
+    """Which planned moves Klipper's delta rule ``max_z_accel * d/|dz|`` binds: moves with z travel
+    whose acceleration cap is within ``factor`` of the acceleration the plan already uses.
+
+    Their compensated command accelerates (in z) as hard as the firmware allows (the streaming
+    inverse keeps it there, :attr:`InverseConfig.z_accel_bound`), so the firmware has no slack to
+    recover time: written as segments of several samples, each segment's trapezoid leaves the
+    speed behind the command's where the command's acceleration rises towards the cap, and the
+    lag never comes back (0.5-1 ms per ramp on ``other_delta``).  Their samples (and ``blend``
+    samples either side, where the command pre-actuates and settles) are written one by one.
+    """
+
+    def __init__(self, lim: ChainLimits, factor: float = 2.0):
+        self.lim, self.factor = lim, factor
+        self.cache: dict[int, bool] = {}
+
+    def limited(self, mv) -> bool:
+        b = self.cache.get(mv.index)
+        if b is None:
+            b = False
+            dz = abs(mv.end_mm[2] - mv.start_mm[2])
+            if mv.kind == "move" and dz > 1e-9 and (mv.accel_t_s > 0 or mv.decel_t_s > 0):
+                d = float(np.linalg.norm(np.subtract(mv.end_mm[:3], mv.start_mm[:3])))
+                b = bool(self.lim.max_z_accel * d / dz < self.factor * mv.accel_mm_s2)
+            if len(self.cache) > 4096:
+                self.cache.clear()
+            self.cache[mv.index] = b
+        return b
+
+    def dense(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> np.ndarray:
+        """Mask of the samples written one by one."""
+        return LimitBound._blend(_moves_where(move_index, moves, self.limited), blend) > 0
 
 
 class _NoAccel:
