@@ -285,7 +285,7 @@ class FbsStream:
         d2 = np.diff(d1, axis=0)
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
-        band = self._common_band(a, rows)
+        band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
         smax = np.max(np.abs(d2)) / h2
         if band is not None and smax > float(np.min(np.minimum(-band[0], band[1]))):
             return False
