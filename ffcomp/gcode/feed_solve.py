@@ -30,6 +30,8 @@ SWEEPS = 8
 RECOVERY_ROUNDS = 3
 #: rounds of waiting out time gained ahead of the clock
 AHEAD_ROUNDS = 3
+#: segments that share the wait when a stretch starts ahead of the clock
+AHEAD_SPREAD = 24
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -146,12 +148,24 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         first = ahead & ~np.r_[False, ahead[:-1]]
         if not first.any():
             break
-        FC = sweeps(best, np.where(first, D - ls, t_best), SWEEPS // 2)
-        pC = plan(FC)
-        c = cost(pC[0])
-        if c >= best_cost:
+        # two ways: the first segment waits it all, or the first AHEAD_SPREAD segments share it
+        # (a short segment cannot take much longer than planned without braking harder than the
+        # limits allow: sample-by-sample segments where max_z_accel binds)
+        idx = np.arange(len(D))
+        start_of = np.maximum.accumulate(np.where(first, idx, 0))
+        spread = ahead & (idx - start_of < AHEAD_SPREAD)
+        d_sum = np.bincount(start_of[spread], weights=D[spread], minlength=len(D))[start_of]
+        extra = np.where(spread, -ls[start_of] * D / np.maximum(d_sum, 1e-12), 0.0)
+        kept = False
+        for want in (np.where(first, D - ls, t_best), t_best + extra):
+            FC = sweeps(best, want, SWEEPS // 2)
+            pC = plan(FC)
+            c = cost(pC[0])
+            if c < best_cost:
+                best, best_cost, best_plan, kept = FC, c, pC, True
+                break
+        if not kept:
             break
-        best, best_cost, best_plan = FC, c, pC
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
 
