@@ -101,6 +101,10 @@ class FbsStream:
         self.racc = np.zeros((0, self.C))
         self.cacc = np.zeros(0)  # reference acceleration of the common mode (z) of each row, see set_common_accel_bound
         self.cbound = None  # (limit m/s^2, share, reach samples)
+        # per row: matrices (3, C) from the channels' accelerations to constrained nozzle components
+        # (z and the two normals of the path) and their limits (m/s^2), see set_common_accel_bound
+        self.cmat = np.zeros((0, 3, self.C))
+        self.clim = np.zeros((0, 3))
         self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self._qp_cache: dict = {}
@@ -322,6 +326,9 @@ class FbsStream:
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
         band = self._common_band(a, rows)
+        if band is not None and self.C > 1 and len(self.cmat) >= a + rows:
+            return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                                       factor, lam, pins.size > 0)
         if band is not None:
             a_lo = np.maximum(a_lo, band[0][r][:, None])
             a_hi = np.minimum(a_hi, band[1][r][:, None])
@@ -384,6 +391,79 @@ class FbsStream:
             out[:, ch] = res.x * sc
         return out
 
+    def _bounded_joint(self, c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
+                       pinned):
+        """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
+        covers, the nozzle components fed as ``comp_mat`` / ``comp_lim``
+        (:meth:`set_common_accel_bound`): one QP over all channels, which those components couple.
+        A component the reference itself exceeds is relaxed to the reference's value.  Falls back
+        to the channels' own bounds where the committed past leaves no room."""
+        import osqp
+        import scipy.sparse as sp
+
+        D = self.bounds[0]
+        C = self.C
+        ra = np.nonzero(np.isfinite(band[0][r]))[0]  # constraint rows the band covers
+        M = self.cmat[a + r[ra]]  # (R', 3, C)
+        L = self.clim[a + r[ra]]  # (R', 3)
+        acc = B2 @ c + e2 + aref
+        ref_k = np.einsum("rkc,rc->rk", M, aref[ra])
+        now_k = np.einsum("rkc,rc->rk", M, acc[ra])
+        Lb = np.maximum(L, np.abs(ref_k) * 1.0001)
+        val, vel = B0 @ c + e0, B1 @ c + e1 + vref
+        bad = (np.any(np.abs(val) > D) or np.any(np.abs(vel) > Vb) or np.any(np.abs(acc) > Ab)
+               or np.any(np.abs(now_k) > Lb))
+        if not bad:
+            return c
+        self.qp_windows += 1
+        sc = 1e-4
+        if nJ * self.n_in == self.Phi.shape[1] and not pinned:
+            G = self.Phi.T @ self.Phi
+            G[np.diag_indices_from(G)] += lam
+        else:  # rare: the tail window or pinned rows
+            G = np.linalg.inv(_chol_to_inv(factor))
+        gn = float(np.mean(np.diag(G))) * sc * sc
+        g = rhs().reshape(nJ, -1)
+        R = len(r)
+        I_C = sp.identity(C, format="csc")
+        # per channel: value, velocity, acceleration rows; then the components, coupling the channels
+        A_box = sp.kron(I_C, sp.csc_matrix(np.vstack([B0, B1, B2])))
+        B2a = B2[ra]
+        A_cmp = sp.csc_matrix(np.hstack([(M[:, :, ch].T.reshape(-1)[:, None]
+                                          * np.tile(B2a, (3, 1))) for ch in range(C)]))
+        lo_box = np.concatenate([np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch],
+                                                 -Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
+        hi_box = np.concatenate([np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch],
+                                                 Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
+        base_k = np.einsum("rkc,rc->rk", M, aref[ra] + e2[ra])  # the components without the new bases
+        lo_c = (-Lb - base_k).T.reshape(-1)
+        hi_c = (Lb - base_k).T.reshape(-1)
+        A = sp.vstack([A_box, A_cmp], format="csc") * sc
+        rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
+        A = sp.diags(1.0 / rn) @ A
+        P = sp.kron(I_C, sp.csc_matrix(G * sc * sc / gn), format="csc")
+        q = -(g.T.reshape(-1)) * sc / gn
+        x0 = c.T.reshape(-1) / sc
+
+        def solve(lo, hi):
+            solver = osqp.OSQP()
+            solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A), l=lo / rn, u=hi / rn, verbose=False,
+                         warm_starting=True, eps_abs=1e-5, eps_rel=1e-5, max_iter=4000, polishing=False)
+            solver.warm_start(x=x0)
+            res = solver.solve(raise_error=False)
+            ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
+            return res.x if ok and res.x is not None and np.all(np.isfinite(res.x)) else None
+
+        x = solve(np.concatenate([lo_box, lo_c]), np.concatenate([hi_box, hi_c]))
+        if x is None:  # the committed past leaves no room for the components: the channels' bounds
+            self.band_dropped += 1
+            x = solve(np.concatenate([lo_box, np.full(len(lo_c), -1e30)]),
+                      np.concatenate([hi_box, np.full(len(hi_c), 1e30)]))
+        if x is None:
+            raise SolverError(f"OSQP could not keep the command within its bounds in the window starting at "
+                              f"t = {self.w0 * self.basis.dt_s:.3f} s")
+        return (x * sc).reshape(C, nJ).T
+
     def _values(self, upto: int) -> np.ndarray:
         """Spline values for samples [done, upto) (all their bases committed)."""
         m, sup = self.m, self.basis.support
@@ -408,11 +488,12 @@ class FbsStream:
         return out
 
     def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None,
-             common_acc=None) -> np.ndarray:
+             common_acc=None, comp_mat=None, comp_lim=None) -> np.ndarray:
         """Add target rows (and optionally a mask of rows where the spline must vanish, the
         reference's velocity and acceleration per channel for :meth:`set_bounds`, m/s and m/s^2,
-        and its common-mode acceleration (rows,) for :meth:`set_common_accel_bound`, m/s^2);
-        returns spline values of samples that became final (in order)."""
+        and its common-mode acceleration (rows,) for :meth:`set_common_accel_bound`, m/s^2, with,
+        for several channels, the nozzle components that bound constrains (rows, 3, C) and their
+        limits (rows, 3), m/s^2); returns spline values of samples that became final (in order)."""
         target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
@@ -423,6 +504,9 @@ class FbsStream:
         self.racc = np.concatenate([self.racc, ra])
         ca = np.zeros(len(target)) if common_acc is None else np.asarray(common_acc, float).reshape(-1)
         self.cacc = np.concatenate([self.cacc, ca])
+        if comp_mat is not None:
+            self.cmat = np.concatenate([self.cmat, np.asarray(comp_mat, float).reshape(-1, 3, self.C)])
+            self.clim = np.concatenate([self.clim, np.asarray(comp_lim, float).reshape(-1, 3)])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -448,7 +532,58 @@ class FbsStream:
             self.rvel = self.rvel[cut:]
             self.racc = self.racc[cut:]
             self.cacc = self.cacc[cut:]
+            if len(self.cmat):
+                self.cmat = self.cmat[cut:]
+                self.clim = self.clim[cut:]
             self.off += cut
+
+
+def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, z_limit: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What Klipper's delta rule bounds, per sample, in terms of the carriages' accelerations.
+
+    Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along the path, the nozzle's
+    z acceleration is at most ``max_z_accel``; across it, the junction rule (the centripetal
+    ``v^2 <= d a tan(theta/2) / 2`` of short segments) keeps the turning acceleration within the
+    segment's acceleration, ``z_limit / |u_z|`` for the path direction ``u``.  To first order the
+    nozzle's acceleration is ``J q''`` (``J = dX/dq``).
+
+    Parameters
+    ----------
+    geom : DeltaGeometry
+    xyz_m : (N, 3) reference nozzle positions, m
+    qd, qdd : (N, 3) reference carriage velocities (m/s) and accelerations (m/s^2)
+    z_limit : float
+        max_z_accel, m/s^2.
+
+    Returns
+    -------
+    z_acc : (N,) the reference's z acceleration, m/s^2
+    M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's z and the two path normals
+    L : (N, 3) their limits, m/s^2 (``z_limit``, and ``z_limit / |u_z|`` across the path, at
+        most 1000 m/s^2)
+    """
+    from ..kinematics import jacobian
+
+    n = len(xyz_m)
+    if n == 0:
+        return np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3))
+    J = jacobian(geom, xyz_m)
+    v = np.einsum("nij,nj->ni", J, qd)
+    acc = np.einsum("nij,nj->ni", J, qdd)
+    sp_ = np.linalg.norm(v, axis=1)
+    am = np.linalg.norm(acc, axis=1)
+    # the path direction: the velocity's, at rest the acceleration's, else z
+    u = np.where((sp_ > 2e-3)[:, None], v / np.maximum(sp_, 1e-300)[:, None],
+                 np.where((am > 0.05)[:, None], acc / np.maximum(am, 1e-300)[:, None], [0.0, 0.0, 1.0]))
+    e = np.where((np.abs(u[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    n1 = np.cross(u, e)
+    n1 /= np.linalg.norm(n1, axis=1)[:, None]
+    n2 = np.cross(u, n1)
+    M = np.stack([J[:, 2, :], np.einsum("ni,nij->nj", n1, J), np.einsum("ni,nij->nj", n2, J)], axis=1)
+    a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
+    L = np.stack([np.full(n, z_limit), a_seg, a_seg], axis=1)
+    return acc[:, 2], M, L
 
 
 def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray) -> np.ndarray:
@@ -533,7 +668,7 @@ class StreamingInverse:
                     d.set_common_accel_bound(cfg.z_accel_bound, cfg.z_bound_share,
                                              int(round(cfg.z_bound_reach_s / dt)))
         # reference carriage velocity and acceleration of rows in qbuf_u, and the nozzle's z acceleration
-        self.dbuf = np.zeros((0, 7))
+        self.dbuf = np.zeros((0, 19))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -554,8 +689,11 @@ class StreamingInverse:
         """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
-        zacc = nozzle_z_accel(self.model.geometry, X, qdd) if self.zbound else np.zeros(len(q))
-        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None]])])
+        if self.zbound:
+            zacc, M, L = nozzle_components(self.model.geometry, X, qd, qdd, self.cfg.z_accel_bound)
+        else:
+            zacc, M, L = np.zeros(len(q)), np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
+        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None], M.reshape(-1, 9), L])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -580,7 +718,8 @@ class StreamingInverse:
         """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
         tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
         if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6])
+            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6], dn[:, 7:16].reshape(-1, 3, 3),
+                                   dn[:, 16:19])
             if final:
                 e = np.concatenate([e, self.drive[0].finish()])
             return [e[:, i] for i in range(3)]
