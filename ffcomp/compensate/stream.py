@@ -230,11 +230,18 @@ class FbsStream:
         ``sum w_i = 1``), and Klipper caps it on every segment at ``max_z_accel``
         (``max_z_accel * d/|dz|`` on the path acceleration).  The rows fed with ``common_acc``
         (the reference's z acceleration, m/s^2) carry that rule: within ``reach`` samples of a row
-        whose ``|common_acc| >= share * limit`` (m/s^2), every channel's spline acceleration
-        ``s''`` is kept in ``[-A - a_z, A - a_z]`` with ``A = max(limit, |a_z|)`` (the reference's
-        own value where it exceeds the limit), which keeps the command's z acceleration
-        ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights.  Elsewhere only
-        :meth:`set_bounds` applies; needs :meth:`set_bounds` (the same OSQP solve).
+        whose ``|common_acc| >= share * limit`` (m/s^2), the rule applies:
+
+        * with several channels and the rows' ``comp_mat`` / ``comp_lim`` fed (see
+          :func:`nozzle_components`: the nozzle's acceleration along and across the path, with
+          Klipper's ``max_z_accel / |u_z|``), those components of the command stay within their
+          limits (or the reference's own value where it exceeds them), one QP over the channels;
+        * otherwise every channel's spline acceleration ``s''`` is kept in ``[-A - a_z, A - a_z]``
+          with ``A = max(limit, |a_z|)``, which keeps the command's z acceleration
+          ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights (stricter: it also holds
+          back the differential, XY, corrections).
+
+        Elsewhere only :meth:`set_bounds` applies; needs :meth:`set_bounds` (the same OSQP solve).
         """
         self.cbound = (float(limit), float(share), int(reach))
 
@@ -542,11 +549,12 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """What Klipper's delta rule bounds, per sample, in terms of the carriages' accelerations.
 
-    Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along the path, the nozzle's
-    z acceleration is at most ``max_z_accel``; across it, the junction rule (the centripetal
-    ``v^2 <= d a tan(theta/2) / 2`` of short segments) keeps the turning acceleration within the
-    segment's acceleration, ``z_limit / |u_z|`` for the path direction ``u``.  To first order the
-    nozzle's acceleration is ``J q''`` (``J = dX/dq``).
+    Klipper caps a segment's acceleration at ``a_seg = max_z_accel * d/|dz| = z_limit / |u_z|``
+    for the path direction ``u``: along the path the nozzle accelerates at most ``a_seg``; across
+    it, the junction rule (the centripetal ``v^2 <= d a tan(theta/2) / 2`` of short segments)
+    keeps the turning acceleration within ``a_seg`` too.  To first order the nozzle's acceleration
+    is ``J q''`` (``J = dX/dq``); the components are taken along and across the reference's
+    direction (the command's differs from it by the small correction).
 
     Parameters
     ----------
@@ -559,9 +567,9 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     Returns
     -------
     z_acc : (N,) the reference's z acceleration, m/s^2
-    M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's z and the two path normals
-    L : (N, 3) their limits, m/s^2 (``z_limit``, and ``z_limit / |u_z|`` across the path, at
-        most 1000 m/s^2)
+    M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's acceleration along the path
+        and across it (two normals)
+    L : (N, 3) their limits, m/s^2: ``z_limit / |u_z|``, at most 1000 m/s^2
     """
     from ..kinematics import jacobian
 
@@ -580,9 +588,9 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     n1 = np.cross(u, e)
     n1 /= np.linalg.norm(n1, axis=1)[:, None]
     n2 = np.cross(u, n1)
-    M = np.stack([J[:, 2, :], np.einsum("ni,nij->nj", n1, J), np.einsum("ni,nij->nj", n2, J)], axis=1)
     a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
-    L = np.stack([np.full(n, z_limit), a_seg, a_seg], axis=1)
+    M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
+    L = np.repeat(a_seg[:, None], 3, axis=1)
     return acc[:, 2], M, L
 
 
