@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ffcomp.compensate.inverse import InverseConfig
 from ffcomp.compensate.stream import StreamingInverse
 from ffcomp.gcode.sampler import concat_blocks, sample_gcode
 from ffcomp.kinematics import forward

@@ -431,7 +431,6 @@ class FbsStream:
             G = np.linalg.inv(_chol_to_inv(factor))
         gn = float(np.mean(np.diag(G))) * sc * sc
         g = rhs().reshape(nJ, -1)
-        R = len(r)
         I_C = sp.identity(C, format="csc")
         # per channel: value, velocity, acceleration rows; then the components, coupling the channels
         A_box = sp.kron(I_C, sp.csc_matrix(np.vstack([B0, B1, B2])))
@@ -592,18 +591,6 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
     L = np.repeat(a_seg[:, None], 3, axis=1)
     return acc[:, 2], M, L
-
-
-def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray) -> np.ndarray:
-    """The nozzle's z acceleration (m/s^2) from the carriages' (N, 3), to first order: ``sum_i w_i
-    q_i''`` with ``w`` the z row of the Jacobian ``dX/dq`` at the poses ``xyz_m`` (N, 3), m (the
-    arms' turning rates add ``O(v^2 / h)``, under 1 % of the limits at printing speeds)."""
-    from ..kinematics import jacobian
-
-    if len(xyz_m) == 0:
-        return np.zeros(0)
-    w = jacobian(geom, xyz_m)[:, 2, :]
-    return np.einsum("ni,ni->n", w, qdd)
 
 
 def _chol_to_inv(factor) -> np.ndarray:
