@@ -82,14 +82,16 @@ def test_z_reversal_snaps_to_the_vertex():
 
 def test_gcode_keeps_time_on_z_travel(other_delta, tmp_path):
     """The fidelity benchmark's z-travel row on other_delta: the re-planned output ran +5.3 ms off
-    the intended clock and kept 10 % of the exact commands' lag reduction (G-code lag 0.90 of the
-    uncompensated); now within 1.5 ms and under 0.6."""
+    the intended clock, with G-code lag 0.90 and contour 0.13 of the uncompensated (kept 10 % of the
+    exact commands' lag reduction); now about +1.1 ms, 0.15 and 0.04 (loose bounds here)."""
     prof, truth = other_delta
     src = tmp_path / "z.gcode"
     src.write_text(Z_TRAVEL)
     c = check_gcode_output(prof, src, tmp_path / "out.gcode", plant_profile=truth,
                            opts=CompensateOptions(predict=False, self_check_tol_um=1e9, self_check_drift_ms=1e9))
     lag = c.gcode.lag.rms_norm_um / c.none.lag.rms_norm_um
-    assert abs(c.summary.self_check_drift_ms) < 1.5
-    assert lag < 0.6
+    contour = c.gcode.contour.rms_norm_um / c.none.contour.rms_norm_um
+    assert abs(c.summary.self_check_drift_ms) < 2.0
+    assert lag < 0.4
+    assert contour < 0.1
     assert c.exact.lag.rms_norm_um / c.none.lag.rms_norm_um < 0.05  # the exact commands are unchanged
