@@ -12,6 +12,8 @@ the accuracy/time trade-off.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
@@ -103,8 +105,8 @@ class FbsStream:
         self.cbound = None  # (limit m/s^2, share, reach samples)
         # per row: matrices (3, C) from the channels' accelerations to constrained nozzle components
         # (z and the two normals of the path) and their limits (m/s^2), see set_common_accel_bound
-        self.cmat = np.zeros((0, 3, self.C))
-        self.clim = np.zeros((0, 3))
+        self.cpos = np.zeros((0, 3))  # the reference's nozzle position of each row (m), for comp_fn
+        self.comp_fn = None
         self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self._qp_cache: dict = {}
@@ -222,7 +224,7 @@ class FbsStream:
         self.bounds = (float(deviation), float(velocity), float(acceleration))
         self.cstride = int(stride)
 
-    def set_common_accel_bound(self, limit: float, share: float = 0.3, reach: int = 40) -> None:
+    def set_common_accel_bound(self, limit: float, share: float = 0.3, reach: int = 40, components=None) -> None:
         """Bound the acceleration of the command's common mode where its reference comes near ``limit``.
 
         A delta moves its nozzle in z by moving the three carriages together: the nozzle's z
@@ -232,10 +234,13 @@ class FbsStream:
         (the reference's z acceleration, m/s^2) carry that rule: within ``reach`` samples of a row
         whose ``|common_acc| >= share * limit`` (m/s^2), the rule applies:
 
-        * with several channels and the rows' ``comp_mat`` / ``comp_lim`` fed (see
+        * with several channels, ``components`` (called as ``components(pos, vel, acc)`` with the
+          rows' nozzle positions fed as ``poses`` (m) and the reference's channel velocities and
+          accelerations; returns the rows' matrices (R, K, C) and limits (R, K), m/s^2, e.g.
           :func:`nozzle_components`: the nozzle's acceleration along and across the path, with
-          Klipper's ``max_z_accel / |u_z|``), those components of the command stay within their
-          limits (or the reference's own value where it exceeds them), one QP over the channels;
+          Klipper's ``max_z_accel / |u_z|``) and the rows' poses: those components of the command
+          stay within their limits (or the reference's own value where it exceeds them), one QP over
+          the channels;
         * otherwise every channel's spline acceleration ``s''`` is kept in ``[-A - a_z, A - a_z]``
           with ``A = max(limit, |a_z|)``, which keeps the command's z acceleration
           ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights (stricter: it also holds
@@ -244,6 +249,7 @@ class FbsStream:
         Elsewhere only :meth:`set_bounds` applies; needs :meth:`set_bounds` (the same OSQP solve).
         """
         self.cbound = (float(limit), float(share), int(reach))
+        self.comp_fn = components
 
     def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
@@ -333,7 +339,7 @@ class FbsStream:
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
         band = self._common_band(a, rows)
-        if band is not None and self.C > 1 and len(self.cmat) >= a + rows:
+        if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
             return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
                                        factor, lam, pins.size > 0)
         if band is not None:
@@ -401,7 +407,7 @@ class FbsStream:
     def _bounded_joint(self, c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
                        pinned):
         """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
-        covers, the nozzle components fed as ``comp_mat`` / ``comp_lim``
+        covers, the components of ``set_common_accel_bound(components=...)``
         (:meth:`set_common_accel_bound`): one QP over all channels, which those components couple.
         A component the reference itself exceeds is relaxed to the reference's value.  Falls back
         to the channels' own bounds where the committed past leaves no room."""
@@ -411,8 +417,7 @@ class FbsStream:
         D = self.bounds[0]
         C = self.C
         ra = np.nonzero(np.isfinite(band[0][r]))[0]  # constraint rows the band covers
-        M = self.cmat[a + r[ra]]  # (R', 3, C)
-        L = self.clim[a + r[ra]]  # (R', 3)
+        M, L = self.comp_fn(self.cpos[a + r[ra]], vref[ra], aref[ra])  # (R', K, C), (R', K)
         acc = B2 @ c + e2 + aref
         ref_k = np.einsum("rkc,rc->rk", M, aref[ra])
         now_k = np.einsum("rkc,rc->rk", M, acc[ra])
@@ -494,12 +499,12 @@ class FbsStream:
         return out
 
     def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None,
-             common_acc=None, comp_mat=None, comp_lim=None) -> np.ndarray:
+             common_acc=None, poses=None) -> np.ndarray:
         """Add target rows (and optionally a mask of rows where the spline must vanish, the
         reference's velocity and acceleration per channel for :meth:`set_bounds`, m/s and m/s^2,
-        and its common-mode acceleration (rows,) for :meth:`set_common_accel_bound`, m/s^2, with,
-        for several channels, the nozzle components that bound constrains (rows, 3, C) and their
-        limits (rows, 3), m/s^2); returns spline values of samples that became final (in order)."""
+        and its common-mode acceleration (rows,) and nozzle positions (rows, 3) for
+        :meth:`set_common_accel_bound`, m/s^2 and m); returns spline values of samples that became
+        final (in order)."""
         target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
@@ -510,9 +515,8 @@ class FbsStream:
         self.racc = np.concatenate([self.racc, ra])
         ca = np.zeros(len(target)) if common_acc is None else np.asarray(common_acc, float).reshape(-1)
         self.cacc = np.concatenate([self.cacc, ca])
-        if comp_mat is not None:
-            self.cmat = np.concatenate([self.cmat, np.asarray(comp_mat, float).reshape(-1, 3, self.C)])
-            self.clim = np.concatenate([self.clim, np.asarray(comp_lim, float).reshape(-1, 3)])
+        if poses is not None:
+            self.cpos = np.concatenate([self.cpos, np.asarray(poses, float).reshape(-1, 3)])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -538,14 +542,13 @@ class FbsStream:
             self.rvel = self.rvel[cut:]
             self.racc = self.racc[cut:]
             self.cacc = self.cacc[cut:]
-            if len(self.cmat):
-                self.cmat = self.cmat[cut:]
-                self.clim = self.clim[cut:]
+            if len(self.cpos):
+                self.cpos = self.cpos[cut:]
             self.off += cut
 
 
 def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, z_limit: float
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """What Klipper's delta rule bounds, per sample, in terms of the carriages' accelerations.
 
     Klipper caps a segment's acceleration at ``a_seg = max_z_accel * d/|dz| = z_limit / |u_z|``
@@ -565,7 +568,6 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
 
     Returns
     -------
-    z_acc : (N,) the reference's z acceleration, m/s^2
     M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's acceleration along the path
         and across it (two normals)
     L : (N, 3) their limits, m/s^2: ``z_limit / |u_z|``, at most 1000 m/s^2
@@ -574,7 +576,7 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
 
     n = len(xyz_m)
     if n == 0:
-        return np.zeros(0), np.zeros((0, 3, 3)), np.zeros((0, 3))
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
     J = jacobian(geom, xyz_m)
     v = np.einsum("nij,nj->ni", J, qd)
     acc = np.einsum("nij,nj->ni", J, qdd)
@@ -590,7 +592,21 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
     M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
     L = np.repeat(a_seg[:, None], 3, axis=1)
-    return acc[:, 2], M, L
+    return M, L
+
+
+def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray, stride: int = 8) -> np.ndarray:
+    """The nozzle's z acceleration (m/s^2) from the carriages' ``qdd`` (N, 3) at the poses
+    ``xyz_m`` (N, 3), m: ``sum_i w_i q_i''`` with ``w`` the z row of ``J = dX/dq``, taken every
+    ``stride`` samples (it changes slowly with the pose; this only decides where the z bound
+    applies)."""
+    from ..kinematics import jacobian
+
+    n = len(xyz_m)
+    if n == 0:
+        return np.zeros(0)
+    w = np.repeat(jacobian(geom, xyz_m[::stride])[:, 2, :], stride, axis=0)[:n]
+    return np.einsum("ni,ni->n", w, qdd)
 
 
 def _chol_to_inv(factor) -> np.ndarray:
@@ -661,9 +677,12 @@ class StreamingInverse:
                 d.set_bounds(*cfg.bounds)
                 if self.zbound:
                     d.set_common_accel_bound(cfg.z_accel_bound, cfg.z_bound_share,
-                                             int(round(cfg.z_bound_reach_s / dt)))
-        # reference carriage velocity and acceleration of rows in qbuf_u, and the nozzle's z acceleration
-        self.dbuf = np.zeros((0, 19))
+                                             int(round(cfg.z_bound_reach_s / dt)),
+                                             partial(nozzle_components, self.model.geometry,
+                                                     z_limit=cfg.z_accel_bound))
+        # reference carriage velocity and acceleration of rows in qbuf_u, the nozzle's z acceleration
+        # and position
+        self.dbuf = np.zeros((0, 10))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -684,11 +703,8 @@ class StreamingInverse:
         """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
-        if self.zbound:
-            zacc, M, L = nozzle_components(self.model.geometry, X, qd, qdd, self.cfg.z_accel_bound)
-        else:
-            zacc, M, L = np.zeros(len(q)), np.zeros((len(q), 3, 3)), np.zeros((len(q), 3))
-        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None], M.reshape(-1, 9), L])])
+        zacc = nozzle_z_accel(self.model.geometry, X, qdd) if self.zbound else np.zeros(len(q))
+        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None], X])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -713,8 +729,7 @@ class StreamingInverse:
         """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
         tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
         if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6], dn[:, 7:16].reshape(-1, 3, 3),
-                                   dn[:, 16:19])
+            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6], dn[:, 7:10])
             if final:
                 e = np.concatenate([e, self.drive[0].finish()])
             return [e[:, i] for i in range(3)]
