@@ -423,15 +423,16 @@ class FbsStream:
         now_k = np.einsum("rkc,rc->rk", M, acc[ra])
         Lb = np.maximum(L, np.abs(ref_k) * 1.0001)
         val, vel = B0 @ c + e0, B1 @ c + e1 + vref
-        bad = (np.any(np.abs(val) > D) or np.any(np.abs(vel) > Vb) or np.any(np.abs(acc) > Ab)
-               or np.any(np.abs(now_k) > Lb))
-        if not bad:
+        box_bad = np.any(np.abs(val) > D) or np.any(np.abs(vel) > Vb) or np.any(np.abs(acc) > Ab)
+        if not box_bad and not np.any(np.abs(now_k) > Lb):
             return c
         self.qp_windows += 1
         sc = 1e-4
         if nJ * self.n_in == self.Phi.shape[1] and not pinned:
-            G = self.Phi.T @ self.Phi
-            G[np.diag_indices_from(G)] += lam
+            G = getattr(self, "_gram", None)
+            if G is None:  # the same in every full window
+                G = self._gram = self.Phi.T @ self.Phi
+                G[np.diag_indices_from(G)] += lam
         else:  # rare: the tail window or pinned rows
             G = np.linalg.inv(_chol_to_inv(factor))
         gn = float(np.mean(np.diag(G))) * sc * sc
@@ -451,21 +452,33 @@ class FbsStream:
         hi_c = (Lb - base_k).T.reshape(-1)
         A = sp.vstack([A_box, A_cmp], format="csc") * sc
         rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
-        A = sp.diags(1.0 / rn) @ A
+        A = sp.csr_matrix(sp.diags(1.0 / rn) @ A)
         P = sp.kron(I_C, sp.csc_matrix(G * sc * sc / gn), format="csc")
         q = -(g.T.reshape(-1)) * sc / gn
         x0 = c.T.reshape(-1) / sc
 
-        def solve(lo, hi):
+        nb = A_box.shape[0]
+
+        def solve(lo, hi, rows=slice(None)):
             solver = osqp.OSQP()
-            solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A), l=lo / rn, u=hi / rn, verbose=False,
-                         warm_starting=True, eps_abs=1e-5, eps_rel=1e-5, max_iter=4000, polishing=False)
+            solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A[rows]), l=lo[rows] / rn[rows],
+                         u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
+                         max_iter=4000, polishing=False)
             solver.warm_start(x=x0)
             res = solver.solve(raise_error=False)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             return res.x if ok and res.x is not None and np.all(np.isfinite(res.x)) else None
 
-        x = solve(np.concatenate([lo_box, lo_c]), np.concatenate([hi_box, hi_c]))
+        lo_all, hi_all = np.concatenate([lo_box, lo_c]), np.concatenate([hi_box, hi_c])
+        x = None
+        if not box_bad:  # the channels' own bounds are rarely near: first without them (a smaller problem)
+            x = solve(lo_all, hi_all, slice(nb, None))
+            if x is not None:
+                ab = (A[:nb] @ x) * rn[:nb]
+                if np.any(ab < lo_box - 1e-9 * np.abs(lo_box)) or np.any(ab > hi_box + 1e-9 * np.abs(hi_box)):
+                    x = None
+        if x is None:
+            x = solve(lo_all, hi_all)
         if x is None:  # the committed past leaves no room for the components: the channels' bounds
             self.band_dropped += 1
             x = solve(np.concatenate([lo_box, np.full(len(lo_c), -1e30)]),
