@@ -30,6 +30,8 @@ SWEEPS = 8
 RECOVERY_ROUNDS = 3
 #: rounds of waiting out time gained ahead of the clock
 AHEAD_ROUNDS = 3
+#: rounds of spreading the lateness of a stretch over its first segments
+BEHIND_ROUNDS = 3
 #: segments that share the wait when a stretch starts ahead of the clock
 AHEAD_SPREAD = 24
 #: a segment is never asked to run in less than this share of its intended time (nor the
@@ -166,6 +168,30 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
                 break
         if not kept:
             break
+    # behind the clock for a stretch the recovery above left alone (the queue asks the first
+    # segments for their fastest, which short segments cannot reach without accelerating harder
+    # than the limits allow, and the round is dropped): the first AHEAD_SPREAD segments of the
+    # stretch each take back a share, the latest stretches first, one at a time
+    for _ in range(BEHIND_ROUNDS):
+        t_best = best_plan[0]
+        late_end = late0 + np.cumsum(t_best - D)
+        ls = np.concatenate([[late0], late_end[:-1]])
+        behind = free & (ls > 1e-5)
+        first = np.nonzero(behind & ~np.r_[False, behind[:-1]])[0]
+        if not first.size:
+            break
+        k = int(first[np.argmax(ls[first])])
+        end = k + 1
+        while end < len(D) and end - k < AHEAD_SPREAD and behind[end]:
+            end += 1
+        want = t_best.copy()
+        want[k:end] -= ls[k] * D[k:end] / np.sum(D[k:end])
+        FC = sweeps(best, np.maximum(want, MIN_SHARE * D), SWEEPS // 2)
+        pC = plan(FC)
+        c = cost(pC[0])
+        if c >= best_cost:
+            break
+        best, best_cost, best_plan = FC, c, pC
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
 
