@@ -83,7 +83,7 @@ def test_z_reversal_snaps_to_the_vertex():
 def test_gcode_keeps_time_on_z_travel(other_delta, tmp_path):
     """The fidelity benchmark's z-travel row on other_delta: the re-planned output ran +5.3 ms off
     the intended clock, with G-code lag 0.90 and contour 0.13 of the uncompensated (kept 10 % of the
-    exact commands' lag reduction); now about +1.1 ms, 0.15 and 0.04 (loose bounds here)."""
+    exact commands' lag reduction); now about +1.0 ms, 0.14 and 0.04 (loose bounds here)."""
     prof, truth = other_delta
     src = tmp_path / "z.gcode"
     src.write_text(Z_TRAVEL)
