@@ -70,6 +70,15 @@ class InverseConfig:
     kernel_tol : truncate kernels when the slowest mode has decayed to this fraction
     bounds : (deviation m, carriage velocity m/s, carriage acceleration m/s^2) of the command, enforced
         with OSQP where the least-squares solution breaks them (streaming inverse only); None: unbounded
+    z_accel_bound : the firmware's cap on the nozzle's z acceleration, m/s^2 (Klipper's delta caps
+        every move's acceleration at ``max_z_accel * d/|dz|``): where the reference's own z
+        acceleration comes within ``z_bound_share`` of it (and ``z_bound_reach_s`` around), the
+        command's z acceleration is kept within it too (streaming inverse, with ``bounds``; see
+        :meth:`~ffcomp.compensate.stream.FbsStream.set_common_accel_bound`); None: no such bound
+    z_bound_share : share of ``z_accel_bound`` the reference's z acceleration must reach for the bound
+        to apply (elsewhere the compensation keeps its freedom)
+    z_bound_reach_s : how far before and after such samples the bound applies, s (the command
+        pre-actuates a move and settles after it)
     derivatives : {"samples", "given"}: the reference velocity and acceleration in the inverse
         dynamics: those of the cubic interpolant of the samples (default, :mod:`.differ`: the
         firmware moves through the samples, so corners' velocity jumps are part of the motion) or
@@ -93,6 +102,9 @@ class InverseConfig:
     kernel_tol: float = 1e-3
     bounds: tuple | None = None
     derivatives: str = "samples"
+    z_accel_bound: float | None = None
+    z_bound_share: float = 0.3
+    z_bound_reach_s: float = 0.04
 
     def __post_init__(self):
         if self.method not in METHODS:

@@ -12,6 +12,8 @@ the accuracy/time trade-off.
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
@@ -99,6 +101,13 @@ class FbsStream:
         self.bounds = None  # (deviation m, velocity m/s, acceleration m/s^2) of the command, see set_bounds
         self.rvel = np.zeros((0, self.C))  # reference velocity and acceleration of each row (for the bounds)
         self.racc = np.zeros((0, self.C))
+        self.cacc = np.zeros(0)  # reference acceleration of the common mode (z) of each row, see set_common_accel_bound
+        self.cbound = None  # (limit m/s^2, share, reach samples)
+        # per row: matrices (3, C) from the channels' accelerations to constrained nozzle components
+        # (z and the two normals of the path) and their limits (m/s^2), see set_common_accel_bound
+        self.cpos = np.zeros((0, 3))  # the reference's nozzle position of each row (m), for comp_fn
+        self.comp_fn = None
+        self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self._qp_cache: dict = {}
         self._rows_cache: dict = {}
@@ -215,6 +224,33 @@ class FbsStream:
         self.bounds = (float(deviation), float(velocity), float(acceleration))
         self.cstride = int(stride)
 
+    def set_common_accel_bound(self, limit: float, share: float = 0.3, reach: int = 40, components=None) -> None:
+        """Bound the acceleration of the command's common mode where its reference comes near ``limit``.
+
+        A delta moves its nozzle in z by moving the three carriages together: the nozzle's z
+        acceleration is ``sum_i w_i q_i''`` with ``w`` the z row of ``dX/dq`` (``w_i >= 0``,
+        ``sum w_i = 1``), and Klipper caps it on every segment at ``max_z_accel``
+        (``max_z_accel * d/|dz|`` on the path acceleration).  The rows fed with ``common_acc``
+        (the reference's z acceleration, m/s^2) carry that rule: within ``reach`` samples of a row
+        whose ``|common_acc| >= share * limit`` (m/s^2), the rule applies:
+
+        * with several channels, ``components`` (called as ``components(pos, vel, acc)`` with the
+          rows' nozzle positions fed as ``poses`` (m) and the reference's channel velocities and
+          accelerations; returns the rows' matrices (R, K, C) and limits (R, K), m/s^2, e.g.
+          :func:`nozzle_components`: the nozzle's acceleration along and across the path, with
+          Klipper's ``max_z_accel / |u_z|``) and the rows' poses: those components of the command
+          stay within their limits (or the reference's own value where it exceeds them), one QP over
+          the channels;
+        * otherwise every channel's spline acceleration ``s''`` is kept in ``[-A - a_z, A - a_z]``
+          with ``A = max(limit, |a_z|)``, which keeps the command's z acceleration
+          ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights (stricter: it also holds
+          back the differential, XY, corrections).
+
+        Elsewhere only :meth:`set_bounds` applies; needs :meth:`set_bounds` (the same OSQP solve).
+        """
+        self.cbound = (float(limit), float(share), int(reach))
+        self.comp_fn = components
+
     def _basis_rows(self, starts: np.ndarray, rows: np.ndarray) -> tuple:
         """Values, first and second derivatives of bases starting at ``starts`` at sample ``rows``."""
         if not hasattr(self, "_shapes"):
@@ -225,6 +261,25 @@ class FbsStream:
         ok = (off >= 0) & (off < sup)
         oc = np.clip(off, 0, sup - 1)
         return tuple(np.where(ok, sh[oc], 0.0) for sh in self._shapes)
+
+    def _common_band(self, a: int, rows: int):
+        """The common-mode band of the window's rows ``[a, a + rows)`` (see
+        :meth:`set_common_accel_bound`): ``(lo, hi)`` (rows,) limits on the spline's acceleration
+        (m/s^2, +-inf where it does not apply), or None where no row of the window is near the limit."""
+        if self.cbound is None or rows <= 0:
+            return None
+        lim, share, reach = self.cbound
+        n = len(self.cacc)
+        i0, i1 = max(0, a - reach), min(n, a + rows + reach)
+        big = np.abs(self.cacc[i0:i1]) >= share * lim
+        if not big.any():
+            return None
+        cs = np.concatenate([[0], np.cumsum(big)])
+        i = np.arange(a, a + rows) - i0
+        act = cs[np.clip(i + reach + 1, 0, len(big))] - cs[np.clip(i - reach, 0, len(big))] > 0
+        az = self.cacc[a:a + rows]
+        A = np.maximum(lim, np.abs(az) * 1.0001)
+        return np.where(act, -A - az, -np.inf), np.where(act, A - az, np.inf)
 
     def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int) -> bool:
         """A cheap sufficient test that the window's command keeps its bounds.
@@ -247,8 +302,12 @@ class FbsStream:
         d2 = np.diff(d1, axis=0)
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
+        band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
+        smax = np.max(np.abs(d2)) / h2
+        if band is not None and smax > float(np.min(np.minimum(-band[0], band[1]))):
+            return False
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
-                    and np.max(np.abs(d2)) / h2 + amax <= Acc)
+                    and smax + amax <= Acc)
 
     def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
         import osqp
@@ -277,7 +336,17 @@ class FbsStream:
         # never demand more than the reference or the committed past allow
         Vb = np.maximum(V, np.abs(vref) * 1.0001)
         Ab = np.maximum(Acc, np.abs(aref) * 1.0001)
-        bad = (np.abs(val) > D) | (np.abs(vel) > Vb) | (np.abs(acc) > Ab)
+        # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
+        a_lo, a_hi = -Ab - aref, Ab - aref
+        band = self._common_band(a, rows)
+        if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
+            return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                                       factor, lam, pins.size > 0)
+        if band is not None:
+            a_lo = np.maximum(a_lo, band[0][r][:, None])
+            a_hi = np.minimum(a_hi, band[1][r][:, None])
+        s2 = acc - aref
+        bad = (np.abs(val) > D) | (np.abs(vel) > Vb) | (s2 < a_lo) | (s2 > a_hi)
         chans = np.nonzero(bad.any(axis=0))[0]
         if chans.size == 0:
             return c
@@ -310,13 +379,23 @@ class FbsStream:
         solver, gn, rn = entry
         out = c.copy()
         for ch in chans:
-            v0, a0 = vref[:, ch] + e1[:, ch], aref[:, ch] + e2[:, ch]
-            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - v0, -Ab[:, ch] - a0])
-            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, Ab[:, ch] - a0])
+            v0 = vref[:, ch] + e1[:, ch]
+            lo = np.concatenate([-D - e0[:, ch], -Vb[:, ch] - v0, a_lo[:, ch] - e2[:, ch]])
+            hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, a_hi[:, ch] - e2[:, ch]])
             solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
             solver.warm_start(x=c[:, ch] / sc)
             res = solver.solve(raise_error=False)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
+            if band is not None and (not ok or res.x is None or not np.all(np.isfinite(res.x))):
+                # the committed past leaves no room for the common-mode band: the plain bounds only
+                self.band_dropped += 1
+                R = len(r)
+                lo[2 * R:] = -Ab[:, ch] - aref[:, ch] - e2[:, ch]
+                hi[2 * R:] = Ab[:, ch] - aref[:, ch] - e2[:, ch]
+                solver.update(l=lo / rn, u=hi / rn)
+                solver.warm_start(x=c[:, ch] / sc)
+                res = solver.solve(raise_error=False)
+                ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if not ok or res.x is None or not np.all(np.isfinite(res.x)):
                 raise SolverError(
                     f"OSQP could not keep the command within its bounds in the window starting at t = "
@@ -324,6 +403,90 @@ class FbsStream:
                     f"velocity {V * 1e3:g} mm/s, acceleration {Acc * 1e3:g} mm/s^2)")
             out[:, ch] = res.x * sc
         return out
+
+    def _bounded_joint(self, c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
+                       pinned):
+        """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
+        covers, the components of ``set_common_accel_bound(components=...)``
+        (:meth:`set_common_accel_bound`): one QP over all channels, which those components couple.
+        A component the reference itself exceeds is relaxed to the reference's value.  Falls back
+        to the channels' own bounds where the committed past leaves no room."""
+        import osqp
+        import scipy.sparse as sp
+
+        D = self.bounds[0]
+        C = self.C
+        ra = np.nonzero(np.isfinite(band[0][r]))[0]  # constraint rows the band covers
+        M, L = self.comp_fn(self.cpos[a + r[ra]], vref[ra], aref[ra])  # (R', K, C), (R', K)
+        acc = B2 @ c + e2 + aref
+        ref_k = np.einsum("rkc,rc->rk", M, aref[ra])
+        now_k = np.einsum("rkc,rc->rk", M, acc[ra])
+        Lb = np.maximum(L, np.abs(ref_k) * 1.0001)
+        val, vel = B0 @ c + e0, B1 @ c + e1 + vref
+        box_bad = np.any(np.abs(val) > D) or np.any(np.abs(vel) > Vb) or np.any(np.abs(acc) > Ab)
+        if not box_bad and not np.any(np.abs(now_k) > Lb):
+            return c
+        self.qp_windows += 1
+        sc = 1e-4
+        if nJ * self.n_in == self.Phi.shape[1] and not pinned:
+            G = getattr(self, "_gram", None)
+            if G is None:  # the same in every full window
+                G = self._gram = self.Phi.T @ self.Phi
+                G[np.diag_indices_from(G)] += lam
+        else:  # rare: the tail window or pinned rows
+            G = np.linalg.inv(_chol_to_inv(factor))
+        gn = float(np.mean(np.diag(G))) * sc * sc
+        g = rhs().reshape(nJ, -1)
+        I_C = sp.identity(C, format="csc")
+        # per channel: value, velocity, acceleration rows; then the components, coupling the channels
+        A_box = sp.kron(I_C, sp.csc_matrix(np.vstack([B0, B1, B2])))
+        B2a = B2[ra]
+        A_cmp = sp.csc_matrix(np.hstack([(M[:, :, ch].T.reshape(-1)[:, None]
+                                          * np.tile(B2a, (3, 1))) for ch in range(C)]))
+        lo_box = np.concatenate([np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch],
+                                                 -Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
+        hi_box = np.concatenate([np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch],
+                                                 Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
+        base_k = np.einsum("rkc,rc->rk", M, aref[ra] + e2[ra])  # the components without the new bases
+        lo_c = (-Lb - base_k).T.reshape(-1)
+        hi_c = (Lb - base_k).T.reshape(-1)
+        A = sp.vstack([A_box, A_cmp], format="csc") * sc
+        rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
+        A = sp.csr_matrix(sp.diags(1.0 / rn) @ A)
+        P = sp.kron(I_C, sp.csc_matrix(G * sc * sc / gn), format="csc")
+        q = -(g.T.reshape(-1)) * sc / gn
+        x0 = c.T.reshape(-1) / sc
+
+        nb = A_box.shape[0]
+
+        def solve(lo, hi, rows=slice(None)):
+            solver = osqp.OSQP()
+            solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A[rows]), l=lo[rows] / rn[rows],
+                         u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
+                         max_iter=4000, polishing=False)
+            solver.warm_start(x=x0)
+            res = solver.solve(raise_error=False)
+            ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
+            return res.x if ok and res.x is not None and np.all(np.isfinite(res.x)) else None
+
+        lo_all, hi_all = np.concatenate([lo_box, lo_c]), np.concatenate([hi_box, hi_c])
+        x = None
+        if not box_bad:  # the channels' own bounds are rarely near: first without them (a smaller problem)
+            x = solve(lo_all, hi_all, slice(nb, None))
+            if x is not None:
+                ab = (A[:nb] @ x) * rn[:nb]
+                if np.any(ab < lo_box - 1e-9 * np.abs(lo_box)) or np.any(ab > hi_box + 1e-9 * np.abs(hi_box)):
+                    x = None
+        if x is None:
+            x = solve(lo_all, hi_all)
+        if x is None:  # the committed past leaves no room for the components: the channels' bounds
+            self.band_dropped += 1
+            x = solve(np.concatenate([lo_box, np.full(len(lo_c), -1e30)]),
+                      np.concatenate([hi_box, np.full(len(hi_c), 1e30)]))
+        if x is None:
+            raise SolverError(f"OSQP could not keep the command within its bounds in the window starting at "
+                              f"t = {self.w0 * self.basis.dt_s:.3f} s")
+        return (x * sc).reshape(C, nJ).T
 
     def _values(self, upto: int) -> np.ndarray:
         """Spline values for samples [done, upto) (all their bases committed)."""
@@ -348,9 +511,13 @@ class FbsStream:
         self.cj0 = keep_j
         return out
 
-    def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None) -> np.ndarray:
-        """Add target rows (and optionally a mask of rows where the spline must vanish); returns
-        spline values of samples that became final (in order)."""
+    def feed(self, target: np.ndarray, pin: np.ndarray | None = None, ref_vel=None, ref_acc=None,
+             common_acc=None, poses=None) -> np.ndarray:
+        """Add target rows (and optionally a mask of rows where the spline must vanish, the
+        reference's velocity and acceleration per channel for :meth:`set_bounds`, m/s and m/s^2,
+        and its common-mode acceleration (rows,) and nozzle positions (rows, 3) for
+        :meth:`set_common_accel_bound`, m/s^2 and m); returns spline values of samples that became
+        final (in order)."""
         target = np.asarray(target, float).reshape(-1, self.n_out * self.C)
         self.tgt = np.concatenate([self.tgt, target])
         self.pin = np.concatenate([self.pin, np.zeros(len(target), bool) if pin is None else np.asarray(pin, bool)])
@@ -359,6 +526,10 @@ class FbsStream:
         ra = z if ref_acc is None else np.asarray(ref_acc, float).reshape(-1, self.C)
         self.rvel = np.concatenate([self.rvel, rv])
         self.racc = np.concatenate([self.racc, ra])
+        ca = np.zeros(len(target)) if common_acc is None else np.asarray(common_acc, float).reshape(-1)
+        self.cacc = np.concatenate([self.cacc, ca])
+        if poses is not None:
+            self.cpos = np.concatenate([self.cpos, np.asarray(poses, float).reshape(-1, 3)])
         end = self.off + len(self.tgt)
         while self.w0 + self.W <= end:
             self._solve_window(self.W, final=False)
@@ -383,7 +554,72 @@ class FbsStream:
             self.pin = self.pin[cut:]
             self.rvel = self.rvel[cut:]
             self.racc = self.racc[cut:]
+            self.cacc = self.cacc[cut:]
+            if len(self.cpos):
+                self.cpos = self.cpos[cut:]
             self.off += cut
+
+
+def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, z_limit: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """What Klipper's delta rule bounds, per sample, in terms of the carriages' accelerations.
+
+    Klipper caps a segment's acceleration at ``a_seg = max_z_accel * d/|dz| = z_limit / |u_z|``
+    for the path direction ``u``: along the path the nozzle accelerates at most ``a_seg``; across
+    it, the junction rule (the centripetal ``v^2 <= d a tan(theta/2) / 2`` of short segments)
+    keeps the turning acceleration within ``a_seg`` too.  To first order the nozzle's acceleration
+    is ``J q''`` (``J = dX/dq``); the components are taken along and across the reference's
+    direction (the command's differs from it by the small correction).
+
+    Parameters
+    ----------
+    geom : DeltaGeometry
+    xyz_m : (N, 3) reference nozzle positions, m
+    qd, qdd : (N, 3) reference carriage velocities (m/s) and accelerations (m/s^2)
+    z_limit : float
+        max_z_accel, m/s^2.
+
+    Returns
+    -------
+    M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's acceleration along the path
+        and across it (two normals)
+    L : (N, 3) their limits, m/s^2: ``z_limit / |u_z|``, at most 1000 m/s^2
+    """
+    from ..kinematics import jacobian
+
+    n = len(xyz_m)
+    if n == 0:
+        return np.zeros((0, 3, 3)), np.zeros((0, 3))
+    J = jacobian(geom, xyz_m)
+    v = np.einsum("nij,nj->ni", J, qd)
+    acc = np.einsum("nij,nj->ni", J, qdd)
+    sp_ = np.linalg.norm(v, axis=1)
+    am = np.linalg.norm(acc, axis=1)
+    # the path direction: the velocity's, at rest the acceleration's, else z
+    u = np.where((sp_ > 2e-3)[:, None], v / np.maximum(sp_, 1e-300)[:, None],
+                 np.where((am > 0.05)[:, None], acc / np.maximum(am, 1e-300)[:, None], [0.0, 0.0, 1.0]))
+    e = np.where((np.abs(u[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+    n1 = np.cross(u, e)
+    n1 /= np.linalg.norm(n1, axis=1)[:, None]
+    n2 = np.cross(u, n1)
+    a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
+    M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
+    L = np.repeat(a_seg[:, None], 3, axis=1)
+    return M, L
+
+
+def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray, stride: int = 8) -> np.ndarray:
+    """The nozzle's z acceleration (m/s^2) from the carriages' ``qdd`` (N, 3) at the poses
+    ``xyz_m`` (N, 3), m: ``sum_i w_i q_i''`` with ``w`` the z row of ``J = dX/dq``, taken every
+    ``stride`` samples (it changes slowly with the pose; this only decides where the z bound
+    applies)."""
+    from ..kinematics import jacobian
+
+    n = len(xyz_m)
+    if n == 0:
+        return np.zeros(0)
+    w = np.repeat(jacobian(geom, xyz_m[::stride])[:, 2, :], stride, axis=0)[:n]
+    return np.einsum("ni,ni->n", w, qdd)
 
 
 def _chol_to_inv(factor) -> np.ndarray:
@@ -448,10 +684,18 @@ class StreamingInverse:
                                         channels=3 if self.shared_drive else 1))
         for i in range(3):
             self.dfilt.append(DriveFilter(*params[i], dt))
+        self.zbound = cfg.bounds is not None and cfg.z_accel_bound is not None
         if cfg.bounds is not None:
             for d in self.drive:
                 d.set_bounds(*cfg.bounds)
-        self.dbuf = np.zeros((0, 6))  # reference carriage velocity and acceleration of rows in qbuf_u
+                if self.zbound:
+                    d.set_common_accel_bound(cfg.z_accel_bound, cfg.z_bound_share,
+                                             int(round(cfg.z_bound_reach_s / dt)),
+                                             partial(nozzle_components, self.model.geometry,
+                                                     z_limit=cfg.z_accel_bound))
+        # reference carriage velocity and acceleration of rows in qbuf_u, the nozzle's z acceleration
+        # and position
+        self.dbuf = np.zeros((0, 10))
         # reference rows waiting for their delta (stage 1) and their eps (stage 2)
         self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
         self.pinbuf = np.zeros(0, bool)  # their hold flags
@@ -472,7 +716,8 @@ class StreamingInverse:
         """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
         cfg = self.cfg
         self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
-        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd])])
+        zacc = nozzle_z_accel(self.model.geometry, X, qdd) if self.zbound else np.zeros(len(q))
+        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None], X])])
         Xm = X.copy()
         if cfg.method == "lti-centre":
             Xm[:, :2] = 0.0
@@ -497,13 +742,13 @@ class StreamingInverse:
         """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
         tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
         if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:])
+            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6], dn[:, 7:10])
             if final:
                 e = np.concatenate([e, self.drive[0].finish()])
             return [e[:, i] for i in range(3)]
         eps = []
         for i in range(3):
-            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i])[:, 0]
+            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i], dn[:, 6])[:, 0]
             if final:
                 e = np.concatenate([e, self.drive[i].finish()[:, 0]])
             eps.append(e)

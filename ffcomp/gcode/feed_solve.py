@@ -30,6 +30,10 @@ SWEEPS = 8
 RECOVERY_ROUNDS = 3
 #: rounds of waiting out time gained ahead of the clock
 AHEAD_ROUNDS = 3
+#: rounds of spreading the lateness of a stretch over its first segments
+BEHIND_ROUNDS = 3
+#: segments that share the wait when a stretch starts ahead of the clock
+AHEAD_SPREAD = 24
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -146,7 +150,43 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         first = ahead & ~np.r_[False, ahead[:-1]]
         if not first.any():
             break
-        FC = sweeps(best, np.where(first, D - ls, t_best), SWEEPS // 2)
+        # two ways: the first segment waits it all, or the first AHEAD_SPREAD segments share it
+        # (a short segment cannot take much longer than planned without braking harder than the
+        # limits allow: sample-by-sample segments where max_z_accel binds)
+        idx = np.arange(len(D))
+        start_of = np.maximum.accumulate(np.where(first, idx, 0))
+        spread = ahead & (idx - start_of < AHEAD_SPREAD)
+        d_sum = np.bincount(start_of[spread], weights=D[spread], minlength=len(D))[start_of]
+        extra = np.where(spread, -ls[start_of] * D / np.maximum(d_sum, 1e-12), 0.0)
+        kept = False
+        for want in (np.where(first, D - ls, t_best), t_best + extra):
+            FC = sweeps(best, want, SWEEPS // 2)
+            pC = plan(FC)
+            c = cost(pC[0])
+            if c < best_cost:
+                best, best_cost, best_plan, kept = FC, c, pC, True
+                break
+        if not kept:
+            break
+    # behind the clock for a stretch the recovery above left alone (the queue asks the first
+    # segments for their fastest, which short segments cannot reach without accelerating harder
+    # than the limits allow, and the round is dropped): the first AHEAD_SPREAD segments of the
+    # stretch each take back a share, the latest stretches first, one at a time
+    for _ in range(BEHIND_ROUNDS):
+        t_best = best_plan[0]
+        late_end = late0 + np.cumsum(t_best - D)
+        ls = np.concatenate([[late0], late_end[:-1]])
+        behind = free & (ls > 1e-5)
+        first = np.nonzero(behind & ~np.r_[False, behind[:-1]])[0]
+        if not first.size:
+            break
+        k = int(first[np.argmax(ls[first])])
+        end = k + 1
+        while end < len(D) and end - k < AHEAD_SPREAD and behind[end]:
+            end += 1
+        want = t_best.copy()
+        want[k:end] -= ls[k] * D[k:end] / np.sum(D[k:end])
+        FC = sweeps(best, np.maximum(want, MIN_SHARE * D), SWEEPS // 2)
         pC = plan(FC)
         c = cost(pC[0])
         if c >= best_cost:
