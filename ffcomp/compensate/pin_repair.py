@@ -35,6 +35,9 @@ from scipy.signal import fftconvolve
 from ..kinematics import reachable
 from ..model.lpv import LpvModel, state_space
 
+#: factorised windows kept by :func:`repair_window` (an LRU cache; about 1 MB each)
+MAX_CACHED_WINDOWS = 256
+
 __all__ = ["RepairConfig", "PulseResponses", "repair_window", "pinned_clusters"]
 
 
@@ -58,7 +61,7 @@ class RepairConfig:
     err_m: float = 1e-6
     accel_xy_m_s2: float = 0.5
     accel_z_m_s2: float = 0.1
-    cell_xy_m: float = 0.02
+    cell_xy_m: float = 0.05
     cell_z_m: float = 0.05
     pin_z_after_hold: bool = True
     tail_stride: int = 3
@@ -226,11 +229,12 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     op = None
     if cache is not None:
         ck = (key, len(pin), np.packbits(pin).tobytes())
-        op = cache.get(ck)
+        op = cache.pop(ck, None)
         if op is None:
-            if len(cache) > 512:
-                cache.clear()
-            op = cache[ck] = _operator(H, pin, J, dt_s, cfg)
+            while len(cache) >= MAX_CACHED_WINDOWS:  # least recently used first (about 1 MB each)
+                cache.pop(next(iter(cache)))
+            op = _operator(H, pin, J, dt_s, cfg)
+        cache[ck] = op  # most recently used last
     else:
         op = _operator(H, pin, J, dt_s, cfg)
     fixed = np.where(pin[:, None], q - c, 0.0)
