@@ -110,6 +110,9 @@ class CompensateOptions:
     #: (:mod:`ffcomp.compensate.pin_repair`), instead of moving on and catching up after them
     pin_repair: bool = True
     repair: RepairConfig = field(default_factory=RepairConfig)
+    #: worker processes (``--jobs``): 1 is the serial run; N > 1 cuts the file into N pieces where the
+    #: toolhead stands still and compensates them in parallel (:mod:`ffcomp.pipeline.parallel_flow`)
+    jobs: int = 1
 
 
 @dataclass
@@ -219,6 +222,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
+    if not isinstance(opts.jobs, int) or opts.jobs < 1:
+        raise ValueError(f"jobs must be an integer >= 1, got {opts.jobs!r}")
     if opts.unknown_policy not in UNKNOWN_POLICIES:
         raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {opts.unknown_policy!r}")
     total_lines = _refuse_compensated(src)
@@ -244,7 +249,13 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         os.close(seg_fd)
         body_fd, body_path = make_temp(out_dir, "body", ".gcode")
         os.close(body_fd)
-        bd = write_body(src, profile, opts, start, summ, body_path, qfile, segfile, progress, total_lines)
+        if opts.jobs > 1:  # pieces cut where the toolhead stands still, on that many processes
+            from .parallel_flow import write_body_parallel
+
+            bd = write_body_parallel(src, profile, opts, start, summ, body_path, qfile, segfile, progress,
+                                     total_lines, out_dir, opts.jobs)
+        else:
+            bd = write_body(src, profile, opts, start, summ, body_path, qfile, segfile, progress, total_lines)
         accel = bd.accel
         summ.warnings += bd.parser_warnings
         _count_commands(summ, bd.counts)
@@ -348,10 +359,12 @@ class _CutFinder:
     def on_stop(self, t_s: float, lineno: int) -> None:
         self.stops.append((t_s, lineno))
         if self.stop is None and lineno >= self.line:
-            self.stop = (t_s, lineno)
+            self.stop = (t_s, lineno, "stop")
 
     def check(self, mv) -> tuple | None:
-        """``(t, line)`` of the cut if it is at the start of ``mv`` (the first move of the next piece)."""
+        """``(t, line, kind)`` of the cut if it is at the start of ``mv`` (the first move of the next
+        piece); kind ``stop`` (a stream ends there anyway) or ``hold`` (a retraction or dwell after a
+        move ending at rest: the cut adds a stream end and start there)."""
         if self.stop is not None and mv.t_start_s >= self.stop[0] - _CUT_EPS_S:
             return self.stop
         v = self.v_end
@@ -359,7 +372,7 @@ class _CutFinder:
             self.v_end = mv.end_v_mm_s
             return None
         if mv.lineno >= self.line and v < 1e-9:
-            return (mv.t_start_s, mv.lineno)
+            return (mv.t_start_s, mv.lineno, "hold")
         return None
 
 
