@@ -292,7 +292,12 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
             _stage(progress, "self-check", total_lines)
-            self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
+            if bd.self_checks is not None:  # --jobs: each piece checked by its worker
+                from .parallel_flow import judge_pieces
+
+                judge_pieces(bd, summ, opts, profile)
+            else:
+                self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
         # success: move into place
         if out_path is None:
             import shutil
@@ -508,6 +513,14 @@ class BodyResult:
     cut_lo: tuple | None = None
     cut_hi: tuple | None = None
     lines_read: int = 0
+    #: where the body's first stream starts (the plan's point) and where its last segment ends, mm
+    start_mm: list | None = None
+    end_mm: list | None = None
+    #: ``--jobs``: the pieces' self-check numbers (:func:`ffcomp.pipeline.self_check.measure`), the
+    #: first sample of each piece, and the largest gap between where a piece ends and the next starts
+    self_checks: list | None = None
+    k_offsets: list | None = None
+    seam_gap_mm: float = 0.0
 
     def rms_um(self, r: int) -> float:
         return math.sqrt(self.pred_sq[r] / max(self.pred_n, 1)) * 1e6
@@ -547,6 +560,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
         pin_stats = PinStats()
         k_written = 0
         last_qc = None
+        ends = [None]  # where the body starts (the plan's point), mm
 
         def emit(qc, meta):
             nonlocal k_written, last_qc
@@ -590,6 +604,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             if new_stream or not k_written:  # the machine stands where the plan starts the stream
                 writer.last_pt = None
                 writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
+                if not k_written:
+                    ends[0] = writer.stream_start_mm.tolist()
             if pred is not None:
                 if new_stream:
                     pred.reset()
@@ -632,7 +648,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                       k_written=k_written, streams=writer.stream + 1,
                       n_xyz=cuts.n_xyz if cuts is not None else 0,
                       cut_lo=cuts.lo if cuts is not None else None, cut_hi=cuts.hi if cuts is not None else None,
-                      lines_read=parser.lines_read)
+                      lines_read=parser.lines_read, start_mm=ends[0],
+                      end_mm=writer.last_pt.tolist() if writer.last_pt is not None else None)
 
 
 def _stage(progress, name: str, total: int) -> None:

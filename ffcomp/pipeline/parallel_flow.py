@@ -32,9 +32,12 @@ from multiprocessing.connection import wait
 
 import numpy as np
 
+from ..errors import SelfCheckError
 from ..gcode.writer import SEG_COLS, WriterStats
 from ..io_atomic import make_temp, release_temp
 from .compensate_flow import BodyResult, CompensationSummary, Piece, write_body
+from .header import firmware_needs, header_lines
+from .self_check import judge, measure, merge, shape_limit_um
 
 __all__ = ["write_body_parallel", "piece_lines", "CUT_NOTE"]
 
@@ -97,6 +100,8 @@ def _worker(conn, src, profile, opts, start, piece, paths, total_lines) -> None:
         summ = CompensationSummary(source=src, output="", method=opts.method)
         bd = write_body(src, profile, opts, start, summ, *paths, progress=progress, total_lines=total_lines,
                         piece=piece)
+        if opts.self_check and bd.k_written:
+            bd.self_checks = [_check_piece(src, profile, opts, start, piece, bd, paths)]
         conn.send(("ok", bd, {k: getattr(summ, k) for k in (*_SUMMED, *_MAXED)}))
     except BaseException as e:  # noqa: BLE001 - every failure goes back to the parent
         try:
@@ -105,6 +110,43 @@ def _worker(conn, src, profile, opts, start, piece, paths, total_lines) -> None:
             conn.send(("error", RuntimeError, {}, f"{type(e).__name__}: {e}"))
     finally:
         conn.close()
+
+
+def _check_piece(src, profile, opts, start, piece, bd, paths) -> dict:
+    """The self-check of one piece: the header and the piece's body re-planned from rest where the
+    piece starts (the file's start, or the plan's point at the cut, where the previous piece ends:
+    :func:`judge_pieces` checks that seam)."""
+    body_path, qfile, segfile = paths
+    needs = firmware_needs(profile, opts, bd.accel, bd.stats)
+    head, _ = header_lines(profile, opts, src, bd.accel, needs)
+    at = start.position_mm[:3] if piece.lo_line is None else bd.start_mm
+
+    def lines():
+        for ln in head:
+            yield ln + "\n"
+        with open(body_path, encoding="utf-8", errors="surrogateescape", newline="") as f:
+            yield from f
+
+    return measure(lines(), qfile, profile, _geom(profile), at, segfile, len(head),
+                   name=f"{src} (compensated, piece)")
+
+
+def _geom(profile):
+    from ..model.lpv import LpvModel
+
+    return LpvModel.from_profile(profile).geometry
+
+
+def judge_pieces(bd: BodyResult, summ, opts, profile) -> None:
+    """The self-check of a ``--jobs`` output from its pieces' checks (see :func:`_check_piece`): their
+    numbers merged on the whole file's sample clock, and the seams: where a piece ends must be where
+    the next one starts (the next piece was checked from there)."""
+    dt = 1.0 / profile.limits.sample_rate_hz
+    judge(merge(bd.self_checks, bd.k_offsets, dt), summ, opts, dt)
+    gap_um = bd.seam_gap_mm * 1e3
+    if gap_um > shape_limit_um(opts):
+        raise SelfCheckError(f"self-check failed: a piece of the --jobs run ends {gap_um:.1f} um from where the "
+                             f"next one starts (limit {shape_limit_um(opts):g} um). Nothing was written.")
 
 
 def _rebuild(cls, state: dict, msg: str) -> BaseException:
@@ -241,9 +283,13 @@ def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs) 
                                       rest=rest, extra=holds * rest))
     sq = [sum(bd.pred_sq[r] for bd in bds) for r in range(2)]
     mx = [max(bd.pred_mx[r] for bd in bds) for r in range(2)]
+    written = [bd for bd in bds if bd.k_written]  # empty pieces (no cut found for them) wrote nothing
+    k_offsets = list(np.cumsum([0] + [bd.k_written for bd in written])[:-1].tolist())
+    gap = 0.0
+    for a, b in zip(written[:-1], written[1:]):
+        if a.end_mm is not None and b.start_mm is not None:
+            gap = max(gap, float(np.max(np.abs(np.subtract(a.end_mm, b.start_mm)))))
+    checks = [bd.self_checks[0] for bd in written] if opts.self_check else None
     return replace(last, stats=stats, pred_sq=sq, pred_n=sum(bd.pred_n for bd in bds), pred_mx=mx,
-                   k_written=sum(bd.k_written for bd in bds), streams=stream_off_total(bds), cut_lo=None, cut_hi=None)
-
-
-def stream_off_total(bds) -> int:
-    return sum(bd.streams for bd in bds)
+                   k_written=sum(bd.k_written for bd in bds), streams=sum(bd.streams for bd in bds), cut_lo=None,
+                   cut_hi=None, self_checks=checks, k_offsets=k_offsets, seam_gap_mm=gap)
