@@ -55,6 +55,10 @@ REST_MOVE = -1
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3
 
+#: feed of the move to the plan's rest point at the start of a piece (``--jobs``), mm/min: a few
+#: micrometres at the header's acceleration take well under a millisecond
+PIECE_START_FEED_MM_MIN = 600.0
+
 
 @dataclass(frozen=True)
 class CompensateOptions:
@@ -113,6 +117,9 @@ class CompensateOptions:
     #: worker processes (``--jobs``): 1 is the serial run; N > 1 cuts the file into N pieces where the
     #: toolhead stands still and compensates them in parallel (:mod:`ffcomp.pipeline.parallel_flow`)
     jobs: int = 1
+    #: with ``jobs`` > 1: re-plan the whole merged output in the self-check (one process, as the
+    #: serial run does) instead of each piece in its worker from rest at its cut
+    self_check_whole: bool = False
 
 
 @dataclass
@@ -292,7 +299,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
             _stage(progress, "self-check", total_lines)
-            if bd.self_checks is not None:  # --jobs: each piece checked by its worker
+            if bd.self_checks is not None and not opts.self_check_whole:  # --jobs: each piece by its worker
                 from .parallel_flow import judge_pieces
 
                 judge_pieces(bd, summ, opts, profile)
@@ -606,6 +613,14 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
                 if not k_written:
                     ends[0] = writer.stream_start_mm.tolist()
+                    if cuts is not None and not cuts.first:
+                        # a piece after a cut: the previous piece's last point is within micrometres
+                        # of the plan's rest point, but the first segments of a stream crawl (the
+                        # pre-actuation from rest), so those micrometres would cost tens of ms: go
+                        # there first, at once, so the piece starts where its writer assumes
+                        x, y, z = ends[0]
+                        writer._w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{PIECE_START_FEED_MM_MIN:g} ; ffcomp: piece start "
+                                  "(--jobs): the plan's rest point\n")
             if pred is not None:
                 if new_stream:
                     pred.reset()

@@ -100,7 +100,7 @@ def _worker(conn, src, profile, opts, start, piece, paths, total_lines) -> None:
         summ = CompensationSummary(source=src, output="", method=opts.method)
         bd = write_body(src, profile, opts, start, summ, *paths, progress=progress, total_lines=total_lines,
                         piece=piece)
-        if opts.self_check and bd.k_written:
+        if opts.self_check and not opts.self_check_whole and bd.k_written:
             bd.self_checks = [_check_piece(src, profile, opts, start, piece, bd, paths)]
         conn.send(("ok", bd, {k: getattr(summ, k) for k in (*_SUMMED, *_MAXED)}))
     except BaseException as e:  # noqa: BLE001 - every failure goes back to the parent
@@ -289,7 +289,7 @@ def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs) 
     for a, b in zip(written[:-1], written[1:]):
         if a.end_mm is not None and b.start_mm is not None:
             gap = max(gap, float(np.max(np.abs(np.subtract(a.end_mm, b.start_mm)))))
-    checks = [bd.self_checks[0] for bd in written] if opts.self_check else None
+    checks = [bd.self_checks[0] for bd in written] if opts.self_check and not opts.self_check_whole else None
     return replace(last, stats=stats, pred_sq=sq, pred_n=sum(bd.pred_n for bd in bds), pred_mx=mx,
                    k_written=sum(bd.k_written for bd in bds), streams=sum(bd.streams for bd in bds), cut_lo=None,
                    cut_hi=None, self_checks=checks, k_offsets=k_offsets, seam_gap_mm=gap)
