@@ -87,6 +87,8 @@ def compensate_cmd(
         raise typer.BadParameter(str(e)) from None
     if jobs < 0:
         raise typer.BadParameter(f"--jobs must be >= 0 (0: one per core), got {jobs}")
+    if jobs != 1 and fmt != "gcode":
+        raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")
     jobs = jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     prof = load_profile_opt(profile)
     out = str(source) if output is None else (None if output == "-" else output)

@@ -178,6 +178,11 @@ class CompensationSummary:
     pin_windows: int = 0
     pinned_samples: int = 0
     pin_max_change_um: float = 0.0
+    #: worker processes (``--jobs``) and, with more than one, each piece: its first source line, how
+    #: it ends (the cut's kind: ``stop``, ``hold`` or None at the end of the file), its samples' print
+    #: time, and its worker's wall and CPU time (s)
+    jobs: int = 1
+    pieces: list | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -96,13 +96,17 @@ def _worker(conn, src, profile, opts, start, piece, paths, total_lines) -> None:
             last[0] = now
             conn.send(("progress", int(line)))
 
+    t0 = time.perf_counter()
     try:
         summ = CompensationSummary(source=src, output="", method=opts.method)
         bd = write_body(src, profile, opts, start, summ, *paths, progress=progress, total_lines=total_lines,
                         piece=piece)
         if opts.self_check and not opts.self_check_whole and bd.k_written:
             bd.self_checks = [_check_piece(src, profile, opts, start, piece, bd, paths)]
-        conn.send(("ok", bd, {k: getattr(summ, k) for k in (*_SUMMED, *_MAXED)}))
+        counters = {k: getattr(summ, k) for k in (*_SUMMED, *_MAXED)}
+        counters["wall_s"] = time.perf_counter() - t0
+        counters["cpu_s"] = time.process_time()
+        conn.send(("ok", bd, counters))
     except BaseException as e:  # noqa: BLE001 - every failure goes back to the parent
         try:
             conn.send(("error", type(e), dict(e.__dict__), str(e)))
@@ -220,7 +224,7 @@ def write_body_parallel(src: str, profile, opts, start, summ, body_path: str, qf
         for pr in procs:
             pr.join()
         return _merge(pieces, [results[i] for i in range(len(pieces))], temps, summ, body_path, qfile, segfile,
-                      opts, jobs)
+                      opts, jobs, 1.0 / profile.limits.sample_rate_hz)
     finally:
         for pr in procs:
             if pr.is_alive():
@@ -231,7 +235,7 @@ def write_body_parallel(src: str, profile, opts, start, summ, body_path: str, qf
                 release_temp(p)
 
 
-def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs) -> BodyResult:
+def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs, dt_s) -> BodyResult:
     """Concatenate the pieces' bodies, commands and segment tables; merge their statistics."""
     line_off = k_off = stream_off = 0
     with open(body_path, "w", encoding="utf-8", errors="surrogateescape", newline="") as fb, \
@@ -280,7 +284,13 @@ def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs) 
     holds = sum(1 for c in cuts if c[2] == "hold")
     rest = opts.inverse.post_s + opts.inverse.pre_s
     summ.notes.append(CUT_NOTE.format(jobs=jobs, pieces=len(cuts) + 1, stops=len(cuts) - holds, holds=holds,
-                                      rest=rest, extra=holds * rest))
+                                      rest=rest, extra=holds * rest)
+                      + "; the pieces took " + ", ".join(f"{c['wall_s']:.1f} s" for _, c in results)
+                      + " (print " + ", ".join(f"{bd.k_written * dt_s:.0f} s" for bd, _ in results) + ")")
+    summ.jobs = jobs
+    summ.pieces = [{"first_line": (bd.cut_lo or (None, 1))[1], "cut": (bd.cut_hi or (None, None, None))[2],
+                    "print_s": bd.k_written * dt_s, "wall_s": c["wall_s"], "cpu_s": c["cpu_s"]}
+                   for bd, c in results]
     sq = [sum(bd.pred_sq[r] for bd in bds) for r in range(2)]
     mx = [max(bd.pred_mx[r] for bd in bds) for r in range(2)]
     written = [bd for bd in bds if bd.k_written]  # empty pieces (no cut found for them) wrote nothing
