@@ -25,6 +25,7 @@ from __future__ import annotations
 import ctypes
 import multiprocessing as mp
 import os
+import re
 import signal
 import time
 from dataclasses import fields, replace
@@ -50,12 +51,73 @@ _SUMMED = ("restarts", "clamped", "plan_fallback_samples", "pin_windows", "pinne
 _MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s")
 
 
-def piece_lines(total_lines: int, jobs: int) -> list[Piece]:
-    """The pieces for ``jobs`` workers: cuts searched from equal shares of the source lines on."""
-    cuts = [max(1, round(i * total_lines / jobs)) for i in range(1, jobs)]
+def piece_lines(total_lines: int, jobs: int, src: str | None = None) -> list[Piece]:
+    """The pieces for ``jobs`` workers: cuts searched from equal shares of the estimated print time
+    (:func:`_time_marks`; of the source lines when ``src`` is None or has no moves)."""
+    cuts = None
+    if src is not None:
+        marks = _time_marks(src)
+        if marks is not None and marks[-1][1] > 0:
+            lines = np.array([m[0] for m in marks])
+            times = np.array([m[1] for m in marks])
+            cuts = [int(lines[min(np.searchsorted(times, i * times[-1] / jobs), len(lines) - 1)])
+                    for i in range(1, jobs)]
+    if cuts is None:
+        cuts = [max(1, round(i * total_lines / jobs)) for i in range(1, jobs)]
     los = [None, *cuts]
     his = [*cuts, None]
     return [Piece(lo, hi) for lo, hi in zip(los, his)]
+
+
+_WORD = re.compile(rb"([XYZEF])\s*(-?\d*\.?\d+)")
+
+
+def _time_marks(src: str, every: int = 1000) -> list[tuple[int, float]] | None:
+    """A rough running print time of a file, every ``every`` lines: ``(line, seconds)``.  Only for
+    balancing the pieces (distance over feed of each G0/G1, absolute or relative; no accelerations);
+    the cuts themselves are found by the plan.  None if the file cannot be read."""
+    pos = {b"X": 0.0, b"Y": 0.0, b"Z": 0.0, b"E": 0.0}
+    feed, t, rel, rel_e = 1500.0, 0.0, False, False
+    marks = []
+    try:
+        with open(src, "rb") as f:
+            for n, raw in enumerate(f, 1):
+                code = raw.split(b";", 1)[0]
+                if code[:2] in (b"G1", b"G0") and code[2:3] in (b" ", b"\t", b"\n", b"\r", b""):
+                    d2, de = 0.0, 0.0
+                    for k, v in _WORD.findall(code):
+                        x = float(v)
+                        if k == b"F":
+                            feed = max(x, 1.0)
+                            continue
+                        if k == b"E":
+                            de = abs(x) if rel_e else abs(x - pos[k])
+                            pos[k] = pos[k] + x if rel_e else x
+                            continue
+                        new = pos[k] + x if rel else x
+                        d2 += (new - pos[k]) ** 2
+                        pos[k] = new
+                    t += (d2 ** 0.5 if d2 > 0 else de) * 60.0 / feed
+                elif code.startswith((b"G91", b"G90", b"M82", b"M83", b"G92")):
+                    c = code[:3]
+                    if c == b"G91":
+                        rel = rel_e = True
+                    elif c == b"G90":
+                        rel, rel_e = False, False
+                    elif c == b"M83":
+                        rel_e = True
+                    elif c == b"M82":
+                        rel_e = False
+                    else:
+                        for k, v in _WORD.findall(code):
+                            if k in pos:
+                                pos[k] = float(v)
+                if n % every == 0:
+                    marks.append((n, t))
+            marks.append((n, t))
+    except (OSError, ValueError, UnboundLocalError):
+        return None
+    return marks
 
 
 def _single_thread_blas() -> None:
@@ -167,7 +229,7 @@ def _rebuild(cls, state: dict, msg: str) -> BaseException:
 def write_body_parallel(src: str, profile, opts, start, summ, body_path: str, qfile: str, segfile: str,
                         progress=None, total_lines: int = 0, out_dir: str = ".", jobs: int = 2) -> BodyResult:
     """:func:`~ffcomp.pipeline.compensate_flow.write_body` on ``jobs`` processes (see the module)."""
-    pieces = piece_lines(total_lines, jobs)
+    pieces = piece_lines(total_lines, jobs, src)
     temps: list[list[str]] = []
     procs: list = []
     try:
