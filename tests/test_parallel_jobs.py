@@ -161,3 +161,35 @@ def test_signal_during_parallel_run_leaves_nothing(tmp_path):
     assert "Traceback" not in err
     assert {p: _digest(p) for p in (src, old)} == before
     assert _leftovers(tmp_path) == []
+
+
+def _squares_with_m400(path: Path) -> Path:
+    """Squares without retractions, an M400 halfway: the only place the toolhead stands still."""
+    lines = [";FLAVOR:Klipper", "G28", "G90", "M83", "G1 Z0.3 F3000", "G1 X-20 Y-20 F6000"]
+    for i in range(40):
+        lines += ["G1 X20 Y-20 E1", "G1 X20 Y20 E1", "G1 X-20 Y20 E1", "G1 X-20 Y-20 E1"]
+        if i == 19:
+            lines.append("M400")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("name", ["stress_square", "arcs", "stress_circle64", "m400"])
+def test_small_files_cut_at_holds_stops_and_homings(tmp_path, profile, name):
+    """Cuts at a retraction, at a stop (m400: no cost), and pieces with a homing between them
+    (stress_square's second piece starts after the G28 that ends the first): valid outputs, both
+    self-checks pass, the print time longer by the rest the cuts add."""
+    src = (ROOT / "samples" / "gcode" / f"{name}.gcode" if name != "m400"
+           else _squares_with_m400(tmp_path / "m400.gcode"))
+    o1, o2, ow = (tmp_path / f"{k}.gcode" for k in ("1", "2", "w"))
+    s1 = compensate_file(str(src), str(o1), profile, CompensateOptions())
+    s2 = compensate_file(str(src), str(o2), profile, CompensateOptions(jobs=2))
+    sw = compensate_file(str(src), str(ow), profile, CompensateOptions(jobs=2, self_check_whole=True))
+    assert _source_lines(o1) == _source_lines(o2)
+    assert len(s2.pieces) == 2 and s2.pieces[0]["cut"] in ("hold", "stop")
+    if name == "m400":
+        assert s2.pieces[0]["cut"] == "stop"
+    rest = 0.35 if s2.pieces[0]["cut"] == "hold" else 0.0
+    for s in (s2, sw):
+        assert abs(s.self_check_drift_ms) < 2.0
+        assert s.output_print_time_s - s1.output_print_time_s == pytest.approx(rest, abs=0.02)

@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import SelfCheckError
 from ..gcode.writer import SEG_COLS, WriterStats
 from ..io_atomic import make_temp, release_temp
-from .compensate_flow import BodyResult, CompensationSummary, Piece, write_body
+from .compensate_flow import JUMP_M, BodyResult, CompensationSummary, Piece, write_body
 from .header import firmware_needs, header_lines
 from .self_check import judge, measure, merge, shape_limit_um
 
@@ -56,7 +56,7 @@ def piece_lines(total_lines: int, jobs: int, src: str | None = None) -> list[Pie
     (:func:`_time_marks`; of the source lines when ``src`` is None or has no moves)."""
     cuts = None
     if src is not None:
-        marks = _time_marks(src)
+        marks = _time_marks(src, every=max(1, total_lines // 400))
         if marks is not None and marks[-1][1] > 0:
             lines = np.array([m[0] for m in marks])
             times = np.array([m[1] for m in marks])
@@ -360,7 +360,9 @@ def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs, 
     gap = 0.0
     for a, b in zip(written[:-1], written[1:]):
         if a.end_mm is not None and b.start_mm is not None:
-            gap = max(gap, float(np.max(np.abs(np.subtract(a.end_mm, b.start_mm)))))
+            g = float(np.max(np.abs(np.subtract(a.end_mm, b.start_mm))))
+            if g <= JUMP_M * 1e3:  # more: a homing between the pieces (a new stream, as in the serial run)
+                gap = max(gap, g)
     checks = [bd.self_checks[0] for bd in written] if opts.self_check and not opts.self_check_whole else None
     return replace(last, stats=stats, pred_sq=sq, pred_n=sum(bd.pred_n for bd in bds), pred_mx=mx,
                    k_written=sum(bd.k_written for bd in bds), streams=sum(bd.streams for bd in bds), cut_lo=None,
