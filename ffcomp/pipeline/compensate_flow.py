@@ -407,6 +407,7 @@ class _PieceState:
         self.n_xyz = 0
         self.fs = 1.0
         self._hi = _CutFinder(piece.hi_line) if piece.hi_line is not None else None
+        self._skip_check = False  # the piece's first move was checked by the end finder already
 
     def begin(self, plan, planned, stops: list, fs_hz: float):
         """Skip the moves before the piece's first cut; returns the moves from it on (None: the piece
@@ -441,7 +442,7 @@ class _PieceState:
                 plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
             else:
                 plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
-            self._skip_check = True  # the first move was checked by the end finder already
+            self._skip_check = True
             return _prepend(mv, planned)
         self.empty = True
         return None
@@ -450,7 +451,7 @@ class _PieceState:
         """Whether ``mv`` is the first move after the piece's last cut."""
         if self._hi is None:
             return False
-        if getattr(self, "_skip_check", False):
+        if self._skip_check:
             self._skip_check = False
             return False
         c = self._hi.check(mv)
