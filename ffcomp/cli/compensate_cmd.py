@@ -53,6 +53,9 @@ def compensate_cmd(
     unknown_commands: Annotated[str, typer.Option("--unknown-commands", help="Unknown macros and G codes: stop "
                                                   "(the toolhead rests before them; default), pass (copied "
                                                   "as they are) or refuse (an error).")] = "stop",
+    jobs: Annotated[int, typer.Option("--jobs", "-j", help="Worker processes: N > 1 cuts the file into N pieces "
+                                      "where the toolhead stands still and compensates them in parallel; 0: one "
+                                      "per core.")] = 1,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
@@ -82,6 +85,11 @@ def compensate_cmd(
         start_mm = None if start is None else parse_start(start)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+    if jobs < 0:
+        raise typer.BadParameter(f"--jobs must be >= 0 (0: one per core), got {jobs}")
+    if jobs != 1 and fmt != "gcode":
+        raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")
+    jobs = jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
     prof = load_profile_opt(profile)
     out = str(source) if output is None else (None if output == "-" else output)
     if fmt != "gcode":
@@ -96,7 +104,7 @@ def compensate_cmd(
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
                              pin_repair=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
-                             unknown_policy=unknown_commands, plan_where_limited=plan_where_limited)
+                             unknown_policy=unknown_commands, plan_where_limited=plan_where_limited, jobs=jobs)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
         with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),

@@ -142,7 +142,7 @@ def _rest_after_end(pos, vel, accel, t, t_end, end_pos):
 
 
 def sample_blocks(moves: Iterable[PlannedMove], geom: DeltaGeometry, *, fs_hz: float, block_len: int = 4096,
-                  overlap: int = 512, path: str = "<gcode>") -> Iterator[SampleBlock]:
+                  overlap: int = 512, path: str = "<gcode>", k_start: int = 0) -> Iterator[SampleBlock]:
     """Stream uniform-time samples of ``moves`` in blocks of ``block_len`` with ``overlap`` shared rows.
 
     Parameters
@@ -157,6 +157,9 @@ def sample_blocks(moves: Iterable[PlannedMove], geom: DeltaGeometry, *, fs_hz: f
         Samples per block and samples shared by consecutive blocks (``0 <= overlap < block_len``).
     path : str
         File name for error messages.
+    k_start : int
+        Index of the first sample (of the global grid ``k / fs_hz``): the moves need only cover the
+        grid from there (a piece of a file, ``--jobs``).
 
     Raises
     ------
@@ -177,7 +180,7 @@ def sample_blocks(moves: Iterable[PlannedMove], geom: DeltaGeometry, *, fs_hz: f
     t_end = 0.0
     end_pos = None
     k_last = None  # index of the final sample, once known
-    k0 = 0
+    k0 = int(k_start)
     first = True
     while True:
         k_hi = k0 + block_len - 1

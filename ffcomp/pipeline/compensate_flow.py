@@ -10,10 +10,11 @@ planner as a self-check, and only then does it replace the output atomically.
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -25,6 +26,7 @@ from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits, segment_limits
 from ..gcode.commands import UNKNOWN_POLICIES
 from ..gcode.flavour import detect_flavour, flavour_mismatch
+from ..gcode.moves import MOVE
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
@@ -39,7 +41,8 @@ from .pin_stream import PinStats, pin_repaired
 from .predictor import Predictor
 from .self_check import self_check
 
-__all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel"]
+__all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel", "Piece",
+           "write_body", "BodyResult"]
 
 #: the z modes (see :class:`CompensateOptions`)
 Z_MODES = ("keep", "hold", "auto")
@@ -51,6 +54,10 @@ REST_MOVE = -1
 
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3
+
+#: feed of the move to the plan's rest point at the start of a piece (``--jobs``), mm/min: a few
+#: micrometres at the header's acceleration take well under a millisecond
+PIECE_START_FEED_MM_MIN = 600.0
 
 
 @dataclass(frozen=True)
@@ -107,6 +114,12 @@ class CompensateOptions:
     #: (:mod:`ffcomp.compensate.pin_repair`), instead of moving on and catching up after them
     pin_repair: bool = True
     repair: RepairConfig = field(default_factory=RepairConfig)
+    #: worker processes (``--jobs``): 1 is the serial run; N > 1 cuts the file into N pieces where the
+    #: toolhead stands still and compensates them in parallel (:mod:`ffcomp.pipeline.parallel_flow`)
+    jobs: int = 1
+    #: with ``jobs`` > 1: re-plan the whole merged output in the self-check (one process, as the
+    #: serial run does) instead of each piece in its worker from rest at its cut
+    self_check_whole: bool = False
 
 
 @dataclass
@@ -165,6 +178,11 @@ class CompensationSummary:
     pin_windows: int = 0
     pinned_samples: int = 0
     pin_max_change_um: float = 0.0
+    #: worker processes (``--jobs``) and, with more than one, each piece: its first source line, how
+    #: it ends (the cut's kind: ``stop``, ``hold`` or None at the end of the file), its samples' print
+    #: time, and its worker's wall and CPU time (s)
+    jobs: int = 1
+    pieces: list | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -216,16 +234,15 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     src = str(src)
     if not os.path.isfile(src):
         raise GcodeError(src, 0, "no such file")
+    if not isinstance(opts.jobs, int) or opts.jobs < 1:
+        raise ValueError(f"jobs must be an integer >= 1, got {opts.jobs!r}")
     if opts.unknown_policy not in UNKNOWN_POLICIES:
         raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {opts.unknown_policy!r}")
     total_lines = _refuse_compensated(src)
     if out_path is not None:  # a path that cannot be written fails now, not after all the work
         out_path = check_output_path(out_path)
     start = resolve_start(src, profile, opts.start_mm)
-    model = LpvModel.from_profile(profile)
-    geom = model.geometry
-    dt = 1.0 / profile.limits.sample_rate_hz
-    icfg = inverse_config(profile, opts)
+    geom = LpvModel.from_profile(profile).geometry
     summ = CompensationSummary(source=src, output=str(out_path) if out_path else "-", method=opts.method,
                                lines_in=total_lines, firmware=profile.limits.planner,
                                start_mm=list(start.position_mm[:3]), homed_first=start.homed_first)
@@ -239,121 +256,32 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         os.close(qfile_fd)
         seg_fd, segfile = make_temp(out_dir, "seg", ".i64")
         os.close(seg_fd)
-        moves: dict = {}
-        plan = GcodePlan(src, profile, lenient=opts.lenient, start_position_mm=start.position_mm,
-                         unknown_policy=opts.unknown_policy)
-        body_fd, body_path = make_temp(out_dir, "body", ".gcode")  # opened at once below: no fd leaks
-        with os.fdopen(body_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as body, \
-                open(qfile, "wb") as qf, open(segfile, "wb") as sf:
-            lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
-                                     home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
-                                     start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy))
-            accel = header_accel(profile, opts)
-            chain = ChainLimits(profile, accel, opts.corner_velocity_mm_s) if plan.firmware == "klipper" else None
-            writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
-                                 max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
-                                 max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
-                                 chain_limits=chain)
-            writer.start_travel_mm_s = start.travel_mm_s
-            pred = Predictor(model, dt) if opts.predict else None
-            bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
-            pin_stats = PinStats()
-            zlim = ZLimited(chain) if chain is not None else None
-            k_written = 0
-            last_qc = None
+        body_fd, body_path = make_temp(out_dir, "body", ".gcode")
+        os.close(body_fd)
+        if opts.jobs > 1:  # pieces cut where the toolhead stands still, on that many processes
+            from .parallel_flow import write_body_parallel
 
-            def emit(qc, meta):
-                nonlocal k_written, last_qc
-                xyz = forward(geom, qc)
-                if np.any(~np.isfinite(xyz)):
-                    bad = int(np.argmax(~np.isfinite(xyz).all(1)))
-                    raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
-                                         f"nozzle position (carriages {qc[bad] * 1e3} mm)")
-                fix = np.zeros(len(xyz), bool)
-                if opts.z_mode in ("hold", "auto"):
-                    hold = (_z_held if opts.z_mode == "hold" else _z_moving)(meta["move_index"], moves)
-                    xyz[hold, 2] = meta["xyz"][hold, 2]
-                    fix |= hold
-                # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
-                # zones) cannot take a command that accelerates harder than the plan: they follow
-                # the plan, sample by sample, so the clock holds (counted in the summary)
-                dense = None
-                if bound is not None:
-                    w, wz = bound.weights(meta["move_index"], moves)
-                    if opts.pin_repair:  # those moves are pinned: the plan, sample by sample
-                        w = (w >= 1.0).astype(float)
-                    dense = (w > 0) | (wz > 0)
-                    if dense.any():
-                        xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
-                        xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
-                        fix |= dense
-                        summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
-                if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
-                    zd, snapped = zlim.dense(meta["move_index"], moves, xyz)
-                    dense = zd if dense is None else (dense | zd)
-                    fix |= snapped
-                # the firmware refuses positions outside its limits: a correction that pokes past
-                # them (at z_max after homing, at the rim) is clamped to the boundary
-                cl = _clamp_to_workspace(xyz, geom)
-                if cl.any():
-                    summ.clamped += int(cl.sum())
-                    fix |= cl
-                if fix.any():
-                    qc = qc.copy()
-                    qc[fix] = inverse(geom, xyz[fix])
-                summ.max_correction_um = max(summ.max_correction_um,
-                                             float(np.max(np.abs(qc - meta["q"]))) * 1e6)
-                qf.write(qc.astype(np.float32).tobytes())
-                new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
-                if new_stream or not k_written:  # the machine stands where the plan starts the stream
-                    writer.last_pt = None
-                    writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
-                if pred is not None:
-                    if new_stream:
-                        pred.reset()
-                    pred.push(qc, meta["q"], meta["xyz"])
-                writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense)
-                k_written += len(qc)
-                last_qc = qc[-1].copy()
-                if progress is not None:
-                    progress(int(meta["lineno"][-1]), total_lines)
-
-            stream = compensated_stream(plan, moves, profile, model, icfg, opts, summ, src)
-            if opts.pin_repair:
-
-                def pinned(mv) -> bool:
-                    if mv.kind != "move":  # extruder-only move or dwell
-                        return True
-                    return bound is not None and (bound.bound(mv) or (
-                        opts.repair.pin_z_after_hold and _z_hop(mv) and bound.z_after_hold(mv, moves)))
-
-                def pins(meta):
-                    return _moves_where(meta["move_index"], moves, pinned)
-
-                stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M)
-            for qc, meta in stream:
-                emit(qc, meta)
-            writer.finish()
-        summ.pin_windows, summ.pinned_samples = pin_stats.windows, pin_stats.pinned_samples
-        summ.pin_max_change_um = pin_stats.max_change_m * 1e6
-        summ.warnings += plan.parser.warnings if hasattr(plan.parser, "warnings") else 0
-        _count_commands(summ, plan.parser.counts)
+            bd = write_body_parallel(src, profile, opts, start, summ, body_path, qfile, segfile, progress,
+                                     total_lines, out_dir, opts.jobs)
+        else:
+            bd = write_body(src, profile, opts, start, summ, body_path, qfile, segfile, progress, total_lines)
+        accel = bd.accel
+        summ.warnings += bd.parser_warnings
+        _count_commands(summ, bd.counts)
         if start_warning:
             summ.warnings += 1
             summ.notes.append(start_warning)
-        summ.notes.extend(plan.parser.warning_messages[:20])
+        summ.notes.extend(bd.warning_messages[:20])
         _stage(progress, "writing", total_lines)
-        summ.segments = writer.stats.segments
-        if pred is not None:
-            pred.flush()
-        if pred is not None and pred.n:
-            summ.rms_before_um, summ.max_before_um = pred.rms_um(1), pred.mx[1] * 1e6
-            summ.rms_after_um, summ.max_after_um = pred.rms_um(0), pred.mx[0] * 1e6
+        summ.segments = bd.stats.segments
+        if bd.pred_n:
+            summ.rms_before_um, summ.max_before_um = bd.rms_um(1), bd.pred_mx[1] * 1e6
+            summ.rms_after_um, summ.max_after_um = bd.rms_um(0), bd.pred_mx[0] * 1e6
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
-        summ.peak_command_accel_mm_s2 = writer.stats.peak_accel_mm_s2
-        needs = firmware_needs(profile, opts, accel, writer.stats)
-        lim_notes = limit_warnings(profile, needs) if plan.firmware == "klipper" else []
+        summ.peak_command_accel_mm_s2 = bd.stats.peak_accel_mm_s2
+        needs = firmware_needs(profile, opts, accel, bd.stats)
+        lim_notes = limit_warnings(profile, needs) if bd.firmware == "klipper" else []
         summ.warnings += len(lim_notes)
         summ.notes.extend(lim_notes)
         head, foot = header_lines(profile, opts, src, accel, needs)
@@ -373,7 +301,12 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.lines_out = n_out + len(head) + len(foot)
         if opts.self_check:
             _stage(progress, "self-check", total_lines)
-            self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
+            if bd.self_checks is not None and not opts.self_check_whole:  # --jobs: each piece by its worker
+                from .parallel_flow import judge_pieces
+
+                judge_pieces(bd, summ, opts, profile)
+            else:
+                self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
         # success: move into place
         if out_path is None:
             import shutil
@@ -394,6 +327,352 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     summ.wall_time_s = time.perf_counter() - t_wall
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
+
+
+@dataclass(frozen=True)
+class Piece:
+    """One part of a file compensated on its own (``--jobs``, :mod:`ffcomp.pipeline.parallel_flow`).
+
+    The piece runs from the first *cut* at or after source line ``lo_line`` (None: the file's start)
+    to the first cut at or after ``hi_line`` (None: the file's end).  A cut is a point where the
+    planned toolhead stands still: a stop the planner reports (M600, M400, a heater wait, an unknown
+    macro: ``planner.on_stop``), or the start of an extruder-only move or dwell that follows a move
+    ending at rest (a retraction).  Every piece plans the file from its start, so the pieces find the
+    same cuts independently; a compensation stream ends at each cut (``post_s`` of rest) and the next
+    begins there (``pre_s`` of rest), as at a stop.
+    """
+
+    lo_line: int | None = None
+    hi_line: int | None = None
+
+
+#: a cut within this of a sample time counts as at it (the stream split rule at stops), s
+_CUT_EPS_S = 1e-9
+
+
+def _first_sample_at(t_s: float, fs_hz: float) -> int:
+    """Index of the first sample at or after ``t_s`` (the stream split rule of :func:`compensated_stream`)."""
+    k = max(int(math.ceil((t_s - _CUT_EPS_S) * fs_hz)), 0)
+    while k > 0 and (k - 1) / fs_hz >= t_s - _CUT_EPS_S:
+        k -= 1
+    while k / fs_hz < t_s - _CUT_EPS_S:
+        k += 1
+    return k
+
+
+class _CutFinder:
+    """The first cut (see :class:`Piece`) at or after a source line, found as the plan goes by: feed
+    it every planned move in order (``check``) and every stop the planner reports (``on_stop``)."""
+
+    def __init__(self, line: int):
+        self.line = line
+        self.stop: tuple | None = None  # (t, line) of the first stop at or after the line
+        self.stops: list[tuple] = []  # every stop reported, (t, line)
+        self.v_end = 0.0  # speed at the end of the last XYZ move, mm/s
+
+    def on_stop(self, t_s: float, lineno: int) -> None:
+        self.stops.append((t_s, lineno))
+        if self.stop is None and lineno >= self.line:
+            self.stop = (t_s, lineno, "stop")
+
+    def check(self, mv) -> tuple | None:
+        """``(t, line, kind)`` of the cut if it is at the start of ``mv`` (the first move of the next
+        piece); kind ``stop`` (a stream ends there anyway) or ``hold`` (a retraction or dwell after a
+        move ending at rest: the cut adds a stream end and start there)."""
+        if self.stop is not None and mv.t_start_s >= self.stop[0] - _CUT_EPS_S:
+            return self.stop
+        v = self.v_end
+        if mv.kind == MOVE:
+            self.v_end = mv.end_v_mm_s
+            return None
+        if mv.lineno >= self.line and v < 1e-9:
+            return (mv.t_start_s, mv.lineno, "hold")
+        return None
+
+
+class _PieceState:
+    """Where one piece begins and ends, found while its worker plans the file (see :class:`Piece`)."""
+
+    def __init__(self, piece: Piece):
+        self.piece = piece
+        self.first = piece.lo_line is None
+        self.lo: tuple | None = None  # (t, line) of the cut the piece starts at
+        self.hi: tuple | None = None  # (t, line) of the cut it ends at
+        self.k_lo = 0
+        self.k_hi = 0
+        self.empty = False
+        self.n_xyz = 0
+        self.fs = 1.0
+        self._hi = _CutFinder(piece.hi_line) if piece.hi_line is not None else None
+        self._skip_check = False  # the piece's first move was checked by the end finder already
+
+    def begin(self, plan, planned, stops: list, fs_hz: float):
+        """Skip the moves before the piece's first cut; returns the moves from it on (None: the piece
+        is empty).  ``stops`` gets the times of the stops after the cut."""
+        self.fs = float(fs_hz)
+        hi = self._hi
+
+        def stop_hook(finder):
+            def f(t_s, lineno):
+                finder.on_stop(t_s, lineno)
+                if hi is not None and finder is not hi:
+                    hi.on_stop(t_s, lineno)
+            return f
+
+        if self.first:
+            if hi is not None:
+                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
+            return planned
+        lo = _CutFinder(self.piece.lo_line)
+        plan.planner.on_stop = stop_hook(lo)
+        for mv in planned:
+            c = lo.check(mv)
+            c_hi = hi.check(mv) if hi is not None else None
+            if c is None:
+                continue
+            self.lo, self.k_lo = c, _first_sample_at(c[0], self.fs)
+            if c_hi is not None:  # no cut between the two lines: nothing here
+                self.empty = True
+                return None
+            stops.extend(t for t, _ in lo.stops if t > c[0] + _CUT_EPS_S)
+            if hi is not None:
+                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
+            else:
+                plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
+            self._skip_check = True
+            return _prepend(mv, planned)
+        self.empty = True
+        return None
+
+    def ends_at(self, mv) -> bool:
+        """Whether ``mv`` is the first move after the piece's last cut."""
+        if self._hi is None:
+            return False
+        if self._skip_check:
+            self._skip_check = False
+            return False
+        c = self._hi.check(mv)
+        if c is not None:
+            self.hi, self.k_hi = c, _first_sample_at(c[0], self.fs)
+            return True
+        return False
+
+    def window(self, lines):
+        """The piece's own source lines: from its first cut's line to before its last cut's line."""
+        for ln in lines:
+            if self.lo is None and not self.first:
+                return  # an empty piece (the lines are pulled only after its first cut is known)
+            if self.lo is not None and ln.lineno < self.lo[1]:
+                continue
+            if self.hi is not None and ln.lineno >= self.hi[1]:
+                return
+            yield ln
+
+    def before_finish(self, writer) -> None:
+        """The writer may hold the next piece's first line (read ahead before the cut was known)."""
+        nl = writer.next_line
+        if self.hi is not None and nl is not None and nl.lineno >= self.hi[1]:
+            writer.next_line = None
+            writer.lines = iter(())
+        elif self.lo is None and not self.first:
+            writer.next_line = None
+            writer.lines = iter(())
+
+
+def _prepend(first, rest):
+    yield first
+    yield from rest
+
+
+def _head(blk, n: int):
+    """The first ``n`` samples of a block (None if none)."""
+    if n <= 0:
+        return None
+    if n >= len(blk.t_s):
+        return blk
+    return replace(blk, t_s=blk.t_s[:n], xyz_m=blk.xyz_m[:n], v_m_s=blk.v_m_s[:n], a_m_s2=blk.a_m_s2[:n],
+                   e_mm=blk.e_mm[:n], q_m=blk.q_m[:n], move_index=blk.move_index[:n], lineno=blk.lineno[:n])
+
+
+def _open_existing(path: str, mode: str):
+    """Open a temporary file that already exists (``make_temp``) for writing, truncated, without
+    creating it: a file a stop signal removed meanwhile is not brought back."""
+    fd = os.open(path, os.O_WRONLY | os.O_TRUNC)
+    if "b" in mode:
+        return os.fdopen(fd, "wb")
+    return os.fdopen(fd, "w", encoding="utf-8", errors="surrogateescape", newline="")
+
+
+@dataclass
+class BodyResult:
+    """What :func:`write_body` wrote: the writer's statistics (the header's firmware needs come from
+    them), the parser's counts, the prediction's sums, and for a piece (``--jobs``) where it was cut."""
+
+    stats: object
+    accel: float
+    firmware: str
+    parser_warnings: int
+    counts: dict
+    warning_messages: list
+    pred_sq: list
+    pred_n: int
+    pred_mx: list
+    k_written: int = 0
+    streams: int = 0
+    n_xyz: int = 0
+    cut_lo: tuple | None = None
+    cut_hi: tuple | None = None
+    lines_read: int = 0
+    #: where the body's first stream starts (the plan's point) and where its last segment ends, mm
+    start_mm: list | None = None
+    end_mm: list | None = None
+    #: ``--jobs``: the pieces' self-check numbers (:func:`ffcomp.pipeline.self_check.measure`), the
+    #: first sample of each piece, and the largest gap between where a piece ends and the next starts
+    self_checks: list | None = None
+    k_offsets: list | None = None
+    seam_gap_mm: float = 0.0
+
+    def rms_um(self, r: int) -> float:
+        return math.sqrt(self.pred_sq[r] / max(self.pred_n, 1)) * 1e6
+
+
+def write_body(src: str, profile, opts: CompensateOptions, start, summ: CompensationSummary, body_path: str,
+               qfile: str, segfile: str, progress=None, total_lines: int = 0, piece: Piece | None = None
+               ) -> BodyResult:
+    """Plan, sample, invert, pin-repair and write the compensated body of ``src`` (or of one
+    :class:`Piece` of it) to ``body_path``, the intended carriage commands (float32 rows) to ``qfile``
+    and the writer's segment table to ``segfile`` (all three exist already: they are opened without
+    being created, so a file a stop signal removed is not re-created).  Counters go into ``summ``."""
+    model = LpvModel.from_profile(profile)
+    geom = model.geometry
+    dt = 1.0 / profile.limits.sample_rate_hz
+    icfg = inverse_config(profile, opts)
+    cuts = _PieceState(piece) if piece is not None else None
+    moves: dict = {}
+    plan = GcodePlan(src, profile, lenient=opts.lenient, start_position_mm=start.position_mm,
+                     unknown_policy=opts.unknown_policy)
+    with _open_existing(body_path, "w") as body, _open_existing(qfile, "wb") as qf, \
+            _open_existing(segfile, "wb") as sf:
+        lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
+                                 home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
+                                 start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy))
+        if cuts is not None:  # the piece's own source lines only (known once its cuts are found)
+            lines = cuts.window(lines)
+        accel = header_accel(profile, opts)
+        chain = ChainLimits(profile, accel, opts.corner_velocity_mm_s) if plan.firmware == "klipper" else None
+        writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
+                             max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
+                             max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
+                             chain_limits=chain)
+        writer.start_travel_mm_s = start.travel_mm_s if cuts is None or cuts.first else None
+        pred = Predictor(model, dt) if opts.predict else None
+        bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
+        pin_stats = PinStats()
+        zlim = ZLimited(chain) if chain is not None else None
+        k_written = 0
+        last_qc = None
+        ends = [None]  # where the body starts (the plan's point), mm
+
+        def emit(qc, meta):
+            nonlocal k_written, last_qc
+            xyz = forward(geom, qc)
+            if np.any(~np.isfinite(xyz)):
+                bad = int(np.argmax(~np.isfinite(xyz).all(1)))
+                raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
+                                     f"nozzle position (carriages {qc[bad] * 1e3} mm)")
+            fix = np.zeros(len(xyz), bool)
+            if opts.z_mode in ("hold", "auto"):
+                hold = (_z_held if opts.z_mode == "hold" else _z_moving)(meta["move_index"], moves)
+                xyz[hold, 2] = meta["xyz"][hold, 2]
+                fix |= hold
+            # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
+            # zones) cannot take a command that accelerates harder than the plan: they follow
+            # the plan, sample by sample, so the clock holds (counted in the summary)
+            dense = None
+            if bound is not None:
+                w, wz = bound.weights(meta["move_index"], moves)
+                if opts.pin_repair:  # those moves are pinned: the plan, sample by sample
+                    w = (w >= 1.0).astype(float)
+                dense = (w > 0) | (wz > 0)
+                if dense.any():
+                    xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
+                    xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
+                    fix |= dense
+                    summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
+            if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
+                zd, snapped = zlim.dense(meta["move_index"], moves, xyz)
+                dense = zd if dense is None else (dense | zd)
+                fix |= snapped
+            # the firmware refuses positions outside its limits: a correction that pokes past
+            # them (at z_max after homing, at the rim) is clamped to the boundary
+            cl = _clamp_to_workspace(xyz, geom)
+            if cl.any():
+                summ.clamped += int(cl.sum())
+                fix |= cl
+            if fix.any():
+                qc = qc.copy()
+                qc[fix] = inverse(geom, xyz[fix])
+            summ.max_correction_um = max(summ.max_correction_um,
+                                         float(np.max(np.abs(qc - meta["q"]))) * 1e6)
+            qf.write(qc.astype(np.float32).tobytes())
+            new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
+            if new_stream or not k_written:  # the machine stands where the plan starts the stream
+                writer.last_pt = None
+                writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
+                if not k_written:
+                    ends[0] = writer.stream_start_mm.tolist()
+                    if cuts is not None and not cuts.first:
+                        # a piece after a cut: the previous piece's last point is within micrometres
+                        # of the plan's rest point, but the first segments of a stream crawl (the
+                        # pre-actuation from rest), so those micrometres would cost tens of ms: go
+                        # there first, at once, so the piece starts where its writer assumes
+                        x, y, z = ends[0]
+                        writer._w(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{PIECE_START_FEED_MM_MIN:g} ; ffcomp: piece start "
+                                  "(--jobs): the plan's rest point\n")
+            if pred is not None:
+                if new_stream:
+                    pred.reset()
+                pred.push(qc, meta["q"], meta["xyz"])
+            writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense)
+            k_written += len(qc)
+            last_qc = qc[-1].copy()
+            if progress is not None:
+                progress(int(meta["lineno"][-1]), total_lines)
+
+        stream = compensated_stream(plan, moves, profile, model, icfg, opts, summ, src, cuts)
+        if opts.pin_repair:
+
+            def pinned(mv) -> bool:
+                if mv.kind != "move":  # extruder-only move or dwell
+                    return True
+                return bound is not None and (bound.bound(mv) or (
+                    opts.repair.pin_z_after_hold and _z_hop(mv) and bound.z_after_hold(mv, moves)))
+
+            def pins(meta):
+                return _moves_where(meta["move_index"], moves, pinned)
+
+            stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M)
+        for qc, meta in stream:
+            emit(qc, meta)
+        if cuts is not None:
+            cuts.before_finish(writer)
+        writer.finish()
+    if pred is not None:
+        pred.flush()
+    summ.pin_windows, summ.pinned_samples = pin_stats.windows, pin_stats.pinned_samples
+    summ.pin_max_change_um = pin_stats.max_change_m * 1e6
+    parser = plan.parser
+    return BodyResult(stats=writer.stats, accel=accel, firmware=plan.firmware,
+                      parser_warnings=parser.warnings if hasattr(parser, "warnings") else 0,
+                      counts=dict(parser.counts), warning_messages=list(parser.warning_messages[:20]),
+                      pred_sq=[float(x) for x in pred.sq] if pred is not None else [0.0, 0.0],
+                      pred_n=pred.n if pred is not None else 0,
+                      pred_mx=[float(x) for x in pred.mx] if pred is not None else [0.0, 0.0],
+                      k_written=k_written, streams=writer.stream + 1,
+                      n_xyz=cuts.n_xyz if cuts is not None else 0,
+                      cut_lo=cuts.lo if cuts is not None else None, cut_hi=cuts.hi if cuts is not None else None,
+                      lines_read=parser.lines_read, start_mm=ends[0],
+                      end_mm=writer.last_pt.tolist() if writer.last_pt is not None else None)
 
 
 def _stage(progress, name: str, total: int) -> None:
@@ -423,7 +702,7 @@ def _count_commands(summ: CompensationSummary, counts: dict) -> None:
 
 
 def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, icfg: InverseConfig, opts,
-                       summ: CompensationSummary, src: str):
+                       summ: CompensationSummary, src: str, pstate: _PieceState | None = None):
     """Compensated carriage commands of a planned file, in order, with each sample's reference.
 
     Yields ``(q_cmd (n, 3), meta)``; ``meta`` holds the reference ``q``, ``xyz`` (m), ``e`` (mm),
@@ -435,6 +714,10 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     rest there) or a sync (M400, M84) ends a stream the same way, so the command stands still at the
     plan's rest position when the firmware runs it, and the next stream starts from rest after it.  A
     file without XYZ motion is an error (nothing to compensate).
+
+    ``pstate`` (``--jobs``): only the samples of one :class:`Piece` are compensated: the plan runs from
+    the file's start (modal state, positions, limits and E stay right) but its moves before the
+    piece's first cut are not sampled, and the last stream ends at the next cut as at a stop.
     """
     geom = model.geometry
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -445,10 +728,19 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     stops: list[float] = []  # print times of stops not yet applied to the stream
     plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
     n_xyz = 0
+    planned = iter(plan)
+    k_start = 0
+    if pstate is not None:
+        planned = pstate.begin(plan, planned, stops, profile.limits.sample_rate_hz)
+        if planned is None:  # an empty piece: its first cut is also its last
+            return
+        k_start = pstate.k_lo
 
     def tee():
         nonlocal n_xyz
-        for mv in plan:
+        for mv in planned:
+            if pstate is not None and pstate.ends_at(mv):
+                return
             moves[mv.index] = mv
             if mv.kind == "move":
                 n_xyz += 1
@@ -465,7 +757,11 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                   e=np.repeat(ee, n_post), move_index=np.full(n_post, REST_MOVE), lineno=np.repeat(ln, n_post))
 
     for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz, block_len=opts.block_len,
-                             overlap=0, path=src):
+                             overlap=0, path=src, k_start=k_start):
+        if pstate is not None and pstate.hi is not None and blk.k0 + len(blk.t_s) > pstate.k_hi:
+            blk = _head(blk, pstate.k_hi - blk.k0)  # the next piece starts at the cut
+            if blk is None:
+                break
         q = blk.q_m
         # homing (or any jump) restarts the compensation stream
         jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
@@ -508,6 +804,9 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     if inv is not None:
         push_post(last_meta)
         yield from out(inv.finish())
+    if pstate is not None:
+        pstate.n_xyz = n_xyz
+        return
     if n_xyz == 0:
         raise GcodeError(src, plan.parser.lines_read, "the file has no XYZ motion (empty, comments only, or no "
                          "moves): nothing to compensate")

@@ -13,7 +13,7 @@ from ..gcode.planner import GcodePlan
 from ..gcode.writer import SEG_COLS
 from ..kinematics import inverse
 
-__all__ = ["self_check", "shape_limit_um", "TIMING_NOTE_MS"]
+__all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_NOTE_MS"]
 
 #: drift (ms) above which the summary notes the timing cost
 TIMING_NOTE_MS = 0.2
@@ -31,6 +31,34 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
     shape (tolerance, firmware acceleration ramps) and the timing inside each segment; the drift of
     the whole file's duration is reported separately (``output_print_time_s``).
     """
+    r = measure(path, qfile, profile, geom, summ.start_mm, segfile, head_len)
+    judge(r, summ, opts, 1.0 / profile.limits.sample_rate_hz)
+
+
+def merge(parts: list[dict], k_offsets: list[int], dt: float) -> dict:
+    """The :func:`measure` results of consecutive pieces of one output (``--jobs``) as one: the
+    pieces' sample indices shifted by ``k_offsets``, their re-planned durations added."""
+    out = dict(parts[0])
+    out["worst_k"] += k_offsets[0]
+    out["drift_at_k"] += k_offsets[0]
+    for r, ko in zip(parts[1:], k_offsets[1:]):
+        if r["worst"] > out["worst"]:
+            out["worst"], out["worst_k"] = r["worst"], r["worst_k"] + ko
+        if abs(r["drift_max"]) > abs(out["drift_max"]):
+            out["drift_max"], out["drift_at_k"] = r["drift_max"], r["drift_at_k"] + ko
+        for k in ("sq", "cnt", "t_end"):
+            out[k] += r[k]
+        for k in ("worst_cu", "worst_abs"):
+            out[k] = max(out[k], r[k])
+        out["drift_end"] = r["drift_end"]
+    out["drift_at"] = out["drift_at_k"] * dt
+    return out
+
+
+def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = None, head_len: int = 0,
+            name: str | None = None) -> dict:
+    """The self-check's numbers (see :func:`self_check`) for the output ``path`` (a file name, or an
+    iterable of its lines named ``name``), re-planned from rest at ``start_mm``."""
     qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
     table = _SegmentTable(segfile, head_len)
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -128,8 +156,9 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
         flush()
 
     last = None
-    start = tuple(summ.start_mm or (0.0, 0.0, 0.0))  # the plan's start (ffcomp.gcode.start)
-    for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0)):
+    start = tuple(start_mm or (0.0, 0.0, 0.0))  # the plan's start (ffcomp.gcode.start)
+    for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0),
+                          **({"path": name} if name else {})):
         buf.append(last)
         if len(buf) >= 5000:
             flush_moves()
@@ -137,6 +166,16 @@ def self_check(path: str, qfile: str, profile, geom, summ, opts,
     table.close()
     t_end = last.t_end_s if last is not None else 0.0
     qf.close()
+    return {"worst": worst, "worst_k": worst_k, "sq": sq, "cnt": cnt, "worst_cu": worst_cu, "worst_abs": worst_abs,
+            "drift_max": drift["max"], "drift_at_k": int(round(drift["at"] / dt)), "drift_at": drift["at"],
+            "drift_end": drift["end"], "t_end": t_end}
+
+
+def judge(r: dict, summ, opts, dt: float) -> None:
+    """Put the self-check's numbers into the summary; raise :class:`SelfCheckError` beyond the limits."""
+    worst, worst_k, sq, cnt = r["worst"], r["worst_k"], r["sq"], r["cnt"]
+    worst_cu, worst_abs, t_end = r["worst_cu"], r["worst_abs"], r["t_end"]
+    drift = {"max": r["drift_max"], "at": r["drift_at"], "end": r["drift_end"]}
     summ.output_print_time_s = t_end
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
