@@ -139,7 +139,7 @@ def _interp_matrix(pin: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
         b = k
         while b < n and not pin[b]:
             b += 1
-        # free run [k, b): knots spread over it, ends included only when next to a window edge
+        # free run [k, b): knots about m apart over it, both of its ends included
         cnt = max(int(np.ceil((b - k) / m)), 1)
         pos = np.unique(np.round(np.linspace(k, b - 1, cnt + 1 if cnt > 1 else 1)).astype(int))
         free_pos.extend(pos.tolist())
