@@ -193,3 +193,24 @@ def test_small_files_cut_at_holds_stops_and_homings(tmp_path, profile, name):
     for s in (s2, sw):
         assert abs(s.self_check_drift_ms) < 2.0
         assert s.output_print_time_s - s1.output_print_time_s == pytest.approx(rest, abs=0.02)
+
+
+def test_hook_takes_jobs(tmp_path):
+    """The slicer hook (in place) with ``--jobs 2``: the same source lines as the serial hook, cut in
+    two pieces, exit 0; ``--jobs -1`` is refused and leaves the file untouched."""
+    import subprocess
+
+    src = ROOT / "samples" / "gcode" / "stress_square.gcode"
+    a, b, c = (tmp_path / f"{k}.gcode" for k in ("a", "b", "c"))
+    for p in (a, b, c):
+        p.write_bytes(src.read_bytes())
+    base = [sys.executable, "-m", "ffcomp", "hook"]
+    r1 = subprocess.run(base + [str(a)], capture_output=True, text=True)
+    r2 = subprocess.run(base + [str(b), "--jobs", "2"], capture_output=True, text=True)
+    assert r1.returncode == 0 and r2.returncode == 0, r2.stderr
+    assert "ffcomp: compensated" in r2.stderr
+    assert _source_lines(a) == _source_lines(b)
+    assert b.read_bytes() != src.read_bytes()
+    r3 = subprocess.run(base + [str(c), "--jobs", "-1"], capture_output=True, text=True)
+    assert r3.returncode != 0 and "--jobs" in r3.stderr
+    assert c.read_bytes() == src.read_bytes()

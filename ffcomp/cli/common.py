@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
@@ -171,3 +172,16 @@ def _print_version(value: bool) -> None:
 def _root(version: Annotated[bool, typer.Option("--version", callback=_print_version, is_eager=True,
                                                 help="Print the ffcomp version and exit.")] = False) -> None:
     """Model-based feedforward vibration compensation for delta 3D printers."""
+
+
+#: ``--jobs/-j`` of the commands that compensate G-code (see :func:`resolve_jobs`)
+JobsOpt = Annotated[int, typer.Option("--jobs", "-j", help="Worker processes: N > 1 cuts the file into N pieces "
+                                      "where the toolhead stands still and compensates them in parallel; 0: one "
+                                      "per core.")]
+
+
+def resolve_jobs(jobs: int) -> int:
+    """``--jobs``: 0 is one worker per core this process may use; negative values are refused."""
+    if jobs < 0:
+        raise typer.BadParameter(f"--jobs must be >= 0 (0: one per core), got {jobs}")
+    return jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)

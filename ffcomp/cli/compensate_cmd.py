@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from .common import JsonOpt, ProfileOpt, app, err_console, load_profile_opt, print_json
+from .common import JobsOpt, JsonOpt, ProfileOpt, app, err_console, load_profile_opt, print_json, resolve_jobs
 
 FORMATS = ("gcode", "steps", "steps-csv")
 
@@ -53,9 +53,7 @@ def compensate_cmd(
     unknown_commands: Annotated[str, typer.Option("--unknown-commands", help="Unknown macros and G codes: stop "
                                                   "(the toolhead rests before them; default), pass (copied "
                                                   "as they are) or refuse (an error).")] = "stop",
-    jobs: Annotated[int, typer.Option("--jobs", "-j", help="Worker processes: N > 1 cuts the file into N pieces "
-                                      "where the toolhead stands still and compensates them in parallel; 0: one "
-                                      "per core.")] = 1,
+    jobs: JobsOpt = 1,
     progress: Annotated[bool, typer.Option("--progress/--no-progress", help="Progress bar on stderr.")] = True,
     profile: ProfileOpt = None,
     json: JsonOpt = False,
@@ -85,11 +83,9 @@ def compensate_cmd(
         start_mm = None if start is None else parse_start(start)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
-    if jobs < 0:
-        raise typer.BadParameter(f"--jobs must be >= 0 (0: one per core), got {jobs}")
     if jobs != 1 and fmt != "gcode":
         raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")
-    jobs = jobs or (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    jobs = resolve_jobs(jobs)
     prof = load_profile_opt(profile)
     out = str(source) if output is None else (None if output == "-" else output)
     if fmt != "gcode":

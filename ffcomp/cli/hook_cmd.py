@@ -20,7 +20,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from .common import ProfileOpt, app, err_console, load_profile_opt
+from .common import JobsOpt, ProfileOpt, app, err_console, load_profile_opt, resolve_jobs
 
 
 @app.command("hook")
@@ -31,6 +31,7 @@ def hook_cmd(
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep or hold (see ffcomp compensate).")] = "keep",
     cura_script: Annotated[bool, typer.Option("--cura-script", help="Print the path of the Cura "
                                               "post-processing script and exit.")] = False,
+    jobs: JobsOpt = 1,
     profile: ProfileOpt = None,
 ) -> None:
     """Slicer post-processing hook: compensate the G-code file in place."""
@@ -46,7 +47,8 @@ def hook_cmd(
 
     prof = load_profile_opt(profile)
     final = os.environ.get("SLIC3R_PP_OUTPUT_NAME")
-    opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, inverse=InverseConfig(method=method))
+    opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, inverse=InverseConfig(method=method),
+                             jobs=resolve_jobs(jobs))
     summ = compensate_file(str(gcode), str(gcode), prof, opts)
     name = f" (final file {final})" if final else ""
     reduction = ""
