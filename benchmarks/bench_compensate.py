@@ -102,6 +102,7 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     st = pstats.Stats(prof)
     import inspect
 
+    from ffcomp.compensate import pin_repair as prp
     from ffcomp.compensate.stream import StreamingInverse
     from ffcomp.gcode.writer import GcodeWriter
     from ffcomp.pipeline import compensate_flow as cf
@@ -114,7 +115,8 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     cum = {k: v[3] for k, v in st.stats.items()}
     total = cum[key(cf._compensate_file)]
     stages = {"G-code writer": key(GcodeWriter.feed), "streaming inverse": key(StreamingInverse.push),
-              "self-check re-plan": key(sc.self_check), "LPV prediction for the summary": key(pr.Predictor.flush)}
+              "self-check re-plan": key(sc.self_check), "LPV prediction for the summary": key(pr.Predictor.flush),
+              "pin repair (re-solved windows)": key(prp.repair_window)}
     print(f"\nTime profile of the first {n_lines:,} lines ({total:.1f} s under cProfile):\n")
     print("| part | share |\n|---|---|")
     for name, key in stages.items():

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT / "samples"))
 
 import make_samples as ms  # noqa: E402
 
-from ffcomp.pipeline.compensate_flow import CompensateOptions  # noqa: E402
+from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file  # noqa: E402
 from ffcomp.pipeline.output_check import check_gcode_output  # noqa: E402
 from ffcomp.profile import default_profile, load_profile  # noqa: E402
 
@@ -64,6 +64,12 @@ def main() -> None:
     ap.add_argument("--pin-holds", default=None, choices=["0", "1"],
                     help="CompensateOptions.pin_repair (1, the default: the command pinned to the plan during "
                          "holds and re-solved around them; 0: the older catch-up writer, --catch-up-holds)")
+    ap.add_argument("--repair", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RepairConfig field of the pin repair, e.g. edge_weight=0 or pin_z_after_hold=0 "
+                         "(repeatable)")
+    ap.add_argument("--drift-file", action="append", default=[], type=Path, metavar="GCODE",
+                    help="also compensate this file (any file: several streams, homing) and print the "
+                         "self-check's drift and deviation from its summary (repeatable)")
     ap.add_argument("--only", default=None, help="only files whose name contains this")
     ap.add_argument("--profiles", default="default,other_delta")
     a = ap.parse_args()
@@ -76,6 +82,15 @@ def main() -> None:
         extra["z_mode"] = a.z_mode
     if a.pin_holds:
         extra["pin_repair"] = a.pin_holds == "1"
+    if a.repair:
+        import dataclasses
+
+        from ffcomp.compensate.pin_repair import RepairConfig
+
+        types = {f.name: f.type for f in dataclasses.fields(RepairConfig)}
+        kv = dict(r.split("=", 1) for r in a.repair)
+        conv = {"bool": lambda v: v.lower() in ("1", "true", "yes"), "int": int, "float": float}
+        extra["repair"] = RepairConfig(**{k: conv[str(types[k])](v) for k, v in kv.items()})
     for pname, (prof, truth) in profiles.items():
         if pname not in a.profiles.split(","):
             continue
@@ -101,6 +116,13 @@ def main() -> None:
                   f"| {e.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | "
                   f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
                   f"{c.kept('contour'):.2f} | {c.summary.self_check_drift_ms:+.3f} |", flush=True)
+        if a.drift_file:
+            print("\n| file | drift max (ms) | at (s) | self-check max (um) |\n|---|---|---|---|")
+        for f in a.drift_file:
+            s = compensate_file(str(f), str(tmp / "drift.gcode"), prof,
+                                CompensateOptions(predict=False, self_check_drift_ms=1e9, **extra))
+            print(f"| {f.name} | {s.self_check_drift_ms:+.3f} | {s.self_check_drift_at_s:.3f} | "
+                  f"{s.self_check_max_um:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

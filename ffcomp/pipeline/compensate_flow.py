@@ -590,9 +590,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             # the plan, sample by sample, so the clock holds (counted in the summary)
             dense = None
             if bound is not None:
-                w, wz = bound.weights(meta["move_index"], moves)
-                if opts.pin_repair:  # those moves are pinned: the plan, sample by sample
-                    w = (w >= 1.0).astype(float)
+                # with the pin repair those moves are pinned (the plan, sample by sample): no blend
+                w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair)
                 dense = (w > 0) | (wz > 0)
                 if dense.any():
                     xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
@@ -885,12 +884,15 @@ class LimitBound:
         prev = moves.get(mv.index - 1)
         return prev is not None and prev.kind != "move"
 
-    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24, blend_moves: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
         """Share of the plan in each sample, for all axes and for z alone: 1 on the moves it takes
         over, a raised-cosine blend over ``blend`` samples either side (the compensated command
         pre-actuates a move before it starts and settles after it: without the blend the firmware
-        would have to jump)."""
-        return (self._blend(self.mask(move_index, moves), blend),
+        would have to jump).  ``blend_moves=False``: the all-axes share without the blend (the pin
+        repair has already brought the command onto the plan there)."""
+        m = self.mask(move_index, moves)
+        return (self._blend(m, blend) if blend_moves else m.astype(float),
                 self._blend(_moves_where(move_index, moves, lambda mv: self.z_after_hold(mv, moves)), blend))
 
     @staticmethod

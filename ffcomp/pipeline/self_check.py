@@ -19,7 +19,6 @@ __all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_
 TIMING_NOTE_MS = 0.2
 
 
-_TRACE = None  # a list to collect (sample time, lateness, line) per batch (debugging aid)
 
 
 def self_check(path: str, qfile: str, profile, geom, summ, opts,
@@ -131,8 +130,6 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
-        if _TRACE is not None:
-            _TRACE.append((kb * dt, late, R[:, 0], ka * dt, t0, dur))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
