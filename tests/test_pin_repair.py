@@ -120,7 +120,7 @@ def test_gcode_with_pins_tracks_better_than_catch_ups(tmp_path, pname):
         ratio[pin] = c.gcode.lag.rms_norm_um / c.none.lag.rms_norm_um
         if pin:
             assert c.summary.pinned_samples > 0 and c.summary.pin_windows > 0
-            assert abs(c.summary.self_check_drift_ms) < 3.0
+            assert abs(c.summary.self_check_drift_ms) < 0.2
             lines = out.read_text().splitlines()
             rest = [ln for i, ln in enumerate(lines[1:], 1)
                     if ln.startswith("G1 E-0.8") and lines[i - 1].startswith("G1 X")]

@@ -134,3 +134,32 @@ def test_tol_um_is_honoured_by_the_self_check(tmp_path, profile):
     s = compensate_file(str(ROOT / "samples" / "gcode" / "stress_square.gcode"), str(tmp_path / "o.gcode"),
                         profile, opts)
     assert s.self_check_max_um <= 150.0 and (tmp_path / "o.gcode").exists()
+
+
+LAYERS = ["G90", "M83", "SET_VELOCITY_LIMIT ACCEL=10000", "G1 X-20 Y-20 Z0.2 F6000", "G4 P0"]
+for _layer in range(3):
+    if _layer:
+        LAYERS += ["G1 E-0.8 F2100", f"G1 Z{0.2 + 0.2 * _layer:.1f} F12000", "G1 E0.8 F2100"]
+    LAYERS += ["G1 X20 Y-20 E1.5 F9000", "G1 X20 Y20 E1.5", "G1 X-20 Y20 E1.5", "G1 X-20 Y-20 E1.5"]
+
+
+@pytest.mark.parametrize("name", ["default", "other"])
+def test_layer_changes_run_on_the_plan_clock(tmp_path, profile, name):
+    """Stops between samples (the corner before a retraction, the layer change's z move at
+    other_delta's max_z_accel = 3000): every written segment ends on the intended clock within
+    0.2 ms, the z move ends exactly on the layer height before the unretract, leaves rest without a
+    crawl, and its segments carry the plan's own speeds (the firmware's ramps then are the plan's)."""
+    prof = profile if name == "default" else load_profile(OTHER)
+    src, out = tmp_path / "layers.gcode", tmp_path / "out.gcode"
+    src.write_text("\n".join(LAYERS) + "\n")
+    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False))
+    assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms
+    lines = out.read_text().splitlines()
+    unretracts = [i for i, ln in enumerate(lines) if ln.startswith("G1 E0.8")]
+    assert len(unretracts) == 2
+    for i, z in zip(unretracts, ("0.4000", "0.6000")):
+        assert lines[i - 1].startswith("G1 X-20.0000 Y-20.0000 Z" + z), lines[i - 3:i + 1]
+        # the z move between the retraction and the unretract: no segment crawls
+        j = max(k for k in range(i) if lines[k].startswith("G1 E-0.8"))
+        feeds = [float(ln.split("F")[1].split()[0]) for ln in lines[j + 1:i] if ln.startswith("G1 X")]
+        assert feeds and min(feeds) > 60.0, feeds

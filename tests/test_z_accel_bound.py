@@ -58,7 +58,8 @@ def test_command_keeps_max_z_accel(other_delta, tmp_path):
 
 def test_z_reversal_snaps_to_the_vertex():
     """Dense samples of a parabola through a turning point between samples: the extreme sample is
-    moved onto the vertex; the samples either side are kept (unless within 1.5 um of it)."""
+    moved onto the vertex, its time returned (the writer puts the point there); the samples either
+    side are kept (unless within 1.5 um of it)."""
 
     class _Mv:  # a planned z move the rule binds
         def __init__(self):
@@ -74,9 +75,10 @@ def test_z_reversal_snaps_to_the_vertex():
     t_star, a = 0.0193, 3.0  # vertex between samples 19 and 20, m/s^2
     xyz = np.zeros((40, 3))
     xyz[:, 2] = 0.025 - 0.5 * a * (t - t_star) ** 2
-    keep, snapped = zl.dense(np.zeros(40, int), {0: _Mv()}, xyz)
+    keep, snapped, shift = zl.dense(np.zeros(40, int), {0: _Mv()}, xyz)
     assert np.nonzero(snapped)[0].tolist() == [19]
     assert xyz[19, 2] == pytest.approx(0.025, abs=1e-12)
+    assert shift[19] == pytest.approx(0.3, abs=1e-9) and not np.delete(shift, 19).any()  # the vertex's time
     assert keep[19] and keep[1:18].all() and keep[21:].all()  # (sample 0: no step before it)
 
 

@@ -198,7 +198,8 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
 
 def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarray, D: np.ndarray,
                 de: np.ndarray, hold: np.ndarray, stop_first: np.ndarray, open_end: bool,
-                pre_late: np.ndarray | None = None) -> np.ndarray:
+                pre_late: np.ndarray | None = None, wait_out: np.ndarray | None = None,
+                fixed_v: np.ndarray | None = None) -> np.ndarray:
     """Feed rates (mm/s) of a chunk's segments, in written order.
 
     Parameters
@@ -216,6 +217,16 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
         The chunk ends in motion (the next chunk continues the chain).
     pre_late : (n,), optional
         Lateness (s) that lines written just before a segment (extruder-only moves, dwells) add.
+    wait_out : (n,), optional
+        Filled with the time (s) to stand still (a ``G4``) before a chain that starts from rest
+        (``stop_first``) ahead of the clock: standing still is exact, whereas a first segment
+        slowed to a crawl leaves the next ones behind a plan that leaves rest at full acceleration.
+        Without it, the first segment waits.
+    fixed_v : (n,), optional
+        Feed rates (mm/s) the solve keeps (NaN: solved): segments that follow the plan itself, whose
+        feed is the plan's peak speed along them, so the firmware's own ramps reproduce the plan
+        (a feed matched to a duration instead trades a few microseconds for speed that segments
+        at the acceleration limit never win back).
     """
     n = len(D)
     F = np.zeros(n)
@@ -244,6 +255,8 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
             F[h] = _hold(lim, st, de[h], D[h])
         k_hold = b
         st.late_s += pre_late[a]
+        if wait_out is not None and stop_first[a] and st.late_s < -1e-6:
+            wait_out[a], st.late_s = -st.late_s, 0.0
         sl = slice(a, b)
         Fa = np.linalg.norm(P1[sl] - P0[sl], axis=1) / D[sl]
         end_open = open_end and b == n
@@ -252,8 +265,8 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
             q0, q1 = np.vstack([t0, P0[sl]]), np.vstack([t1, P1[sl]])
             dd = np.concatenate([tde, de[sl]])
             DD = np.concatenate([tD, D[sl]])
-            FF = np.concatenate([tF, Fa])
-            free = np.r_[np.zeros(len(tF), bool), np.ones(b - a, bool)]
+            FF = np.concatenate([tF, Fa if fixed_v is None else np.where(np.isnan(fixed_v[sl]), Fa, fixed_v[sl])])
+            free = np.r_[np.zeros(len(tF), bool), np.ones(b - a, bool) if fixed_v is None else np.isnan(fixed_v[sl])]
             Fs, late_end, vin = _solve_chain(lim, q0, q1, dd, DD, free, st.tail_late_s, st.tail_v2, end_open, FF)
             nt = len(tF)
             F[sl] = Fs[nt:]
@@ -261,6 +274,9 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
         else:
             q0, q1, dd, DD, FF = P0[sl], P1[sl], de[sl], D[sl], Fa
             free = np.ones(b - a, bool)
+            if fixed_v is not None:
+                free = np.isnan(fixed_v[sl])
+                FF = np.where(free, Fa, fixed_v[sl])
             Fs, late_end, vin = _solve_chain(lim, q0, q1, dd, DD, free, st.late_s, 0.0, end_open, FF)
             F[sl] = Fs
             late_start0 = st.late_s

@@ -41,7 +41,7 @@ from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
-from .chain_plan import ChainLimits
+from .chain_plan import ChainLimits, segment_limits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
@@ -53,8 +53,9 @@ __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", 
 #: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
 EXTRUDE_SPARE_S = 3e-3
 
-#: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream
-SEG_COLS = 5
+#: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream,
+#: and where the segment starts and ends past those samples (a rest start or end between samples), ns
+SEG_COLS = 7
 
 #: ModeChange names whose effect is baked into the output (the line is commented out)
 BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
@@ -208,10 +209,16 @@ class GcodeWriter:
 
     # ------------------------------------------------------------------ samples
     def feed(self, k0: int, xyz_mm: np.ndarray, e_mm: np.ndarray, move_index: np.ndarray,
-             lineno: np.ndarray, dense: np.ndarray | None = None) -> None:
+             lineno: np.ndarray, dense: np.ndarray | None = None, k_plan: np.ndarray | None = None,
+             plan_mm: np.ndarray | None = None, t_shift: np.ndarray | None = None) -> None:
         """Compensated nozzle positions of samples ``k0 ..`` with their reference extrusion and move.
 
         ``dense`` marks samples that each end a segment of their own (no point placement).
+        ``k_plan``: each sample's index on the plan's grid (print time ``k_plan dt``; -1 for the rest
+        samples a stream adds) and ``plan_mm`` the plan's nozzle positions (n, 3): with them, where the
+        command follows the plan, a run whose move comes to rest between samples ends on the plan's
+        rest point at the plan's time and one that leaves rest starts on time (:meth:`_rest_end`).
+        ``t_shift``: where a point is due off its sample's time (a turning point), samples.
 
         The chunk is cut into runs of one planned move.  The numbers of every motion run (point
         placement, extrusion, feed rates) are computed for the whole chunk at once
@@ -235,7 +242,10 @@ class GcodeWriter:
         for a, b, mi, ln in zip(starts, ends, mis, lns):
             mv = self.moves.get(mi)
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
-        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense)
+        on_plan = None
+        if k_plan is not None and plan_mm is not None:
+            on_plan = np.max(np.abs(xyz_mm - plan_mm), axis=1) < 1e-3
+        chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense, k_plan, on_plan, t_shift)
         seg_base = []
         for r, run in enumerate(runs):
             mv, kind, ln = run.move, run.kind, run.lineno
@@ -247,6 +257,8 @@ class GcodeWriter:
                 self._start_travel(xyz_mm[0])
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
+                if chunk.run_wait[r] > 0:  # the firmware stands still: the plan leaves rest later
+                    self._w(f"G4 P{chunk.run_wait[r] * 1000:.3f}\n")
                 if s1 > s0:
                     seg_base.append((r, self.nlines))
                     self._write("".join(chunk.lines[s0:s1]))
@@ -283,7 +295,8 @@ class GcodeWriter:
             self.segment_table.write(rows.tobytes())
 
     def _plan_chunk(self, k0: int, X: np.ndarray, E: np.ndarray, runs: list,
-                    dense: np.ndarray | None = None) -> "_Chunk":
+                    dense: np.ndarray | None = None, k_plan: np.ndarray | None = None,
+                    on_plan: np.ndarray | None = None, t_shift: np.ndarray | None = None) -> "_Chunk":
         """Points, extrusion and feed rates of every motion run of a chunk, vectorised over runs.
 
         Each motion run's path starts at the last emitted point; after an extruder-only move or a
@@ -295,6 +308,8 @@ class GcodeWriter:
         R = len(runs)
         ch = _Chunk(R)
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
+        rest_end = []  # per motion run: (point mm, time / dt, e mm, appended) or None (see _rest_end)
+        went = []  # per motion run: it leaves rest on the plan's time (see _rest_start)
         last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
@@ -310,22 +325,36 @@ class GcodeWriter:
                     dur = self._fast_extrude(ch, r, mv)
                 pend += (dur if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:
-                run_pre[r], pend = pend, 0.0
+                # a move that starts from rest between two samples starts on the plan's time
+                k_go = self._rest_start(k0, a, mv, k_plan, on_plan, last_pt, last_k)
+                went.append(k_go != last_k)
+                run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
                 run_ids.append(r)
                 a_s.append(a)
                 n_s.append(b - a + 1)
                 lead_pt.append(last_pt)
-                lead_k.append(last_k)
+                lead_k.append(k_go)
                 lead_e.append(e_last)
                 catch.append(after_hold and b - a + 1 > 2)
                 follows_hold[r] = after_hold
                 last_pt, after_hold = np.round(X[b - 1], 4), False  # as written
+                end = self._rest_end(k0, b, X, mv, k_plan, on_plan)
+                rest_end.append(end)
+                if end is not None:  # the run ends where and when the plan comes to rest
+                    last_pt = np.round(end[0], 4)
+                    n_s[-1] += end[3]
             else:
                 if kind == EXTRUDE and mv.index not in self.done_moves:
                     ext_de[r] = mv.end_mm[3] - mv.start_mm[3]
                     ext_runs.append(r)
                 after_hold = True
-            last_k, e_last = k0 + b - 1, float(E[b - 1])
+            last_k, e_last = k0 + b - 1 + (float(t_shift[b - 1]) if t_shift is not None else 0.0), float(E[b - 1])
+            if kind == MOVE and rest_end[-1] is not None:
+                last_k, e_last = rest_end[-1][1], rest_end[-1][2]
+            elif kind != MOVE and mv is not None:
+                # written whole (its planned extrusion): the next segment extrudes from its end, not
+                # from the last sample's (which a retraction ending between samples has not reached)
+                e_last = float(mv.end_mm[3])
         self.after_hold = after_hold
         self.pend_late_s = pend
         self.last_k, self.e_last_ref = last_k, e_last
@@ -337,19 +366,37 @@ class GcodeWriter:
         offs = np.cumsum(n_s) - n_s
         total = int(n_s.sum())
         src = np.repeat(a_s - 1 - offs, n_s) + np.arange(total)  # sample of each path point
-        P = X[np.maximum(src, 0)]
+        src = np.clip(src, 0, len(X) - 1)
+        P = X[src]
         P[offs] = np.array(lead_pt)
-        Ef = E[np.maximum(src, 0)]
+        Ef = E[src]
         Ef[offs] = lead_e
-        K = k0 + src
+        K = (k0 + src).astype(float)  # time of each point / dt (a rest end falls between samples)
+        if t_shift is not None:
+            K += t_shift[src]
         K[offs] = lead_k
-        # ---- point placement, all runs at once
         last = offs + n_s - 1
+        ends = [(m_, e) for m_, e in enumerate(rest_end) if e is not None]
+        if ends:  # (appended after the run's last sample, or in its place)
+            at = last[[m_ for m_, _ in ends]]
+            P[at] = np.array([e[0] for _, e in ends])
+            K[at] = [e[1] for _, e in ends]
+            Ef[at] = [e[2] for _, e in ends]
+        # ---- point placement, all runs at once
         keep = np.zeros(total, bool)
         keep[offs] = keep[last] = True
         keep[offs[catch] + 1] = True
+        if ends:  # the point before a rest end keeps its own value and time
+            keep[at - 1] = True
         if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
-            keep |= dense[np.maximum(src, 0)]
+            keep |= dense[src]
+        # leaving rest on time: a first sample within a micrometre of the start would be a hold,
+        # and the segment after it would start from rest a sample late: it is not a point
+        w_ = np.nonzero(np.array(went, bool) & (n_s > 2))[0]
+        if w_.size:
+            o = offs[w_]
+            near = np.linalg.norm(np.round(P[o + 1], 4) - np.round(P[o], 4), axis=1) < 1e-3
+            keep[o[near] + 1] = False
         forced = keep.copy()
         keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
@@ -374,10 +421,23 @@ class GcodeWriter:
         Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
         de = self._extrusion(ch, Ef[j] - Ef[i], run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
+        fixed_v = None
+        if self.chain is not None and on_plan is not None and k_plan is not None:
+            fixed_v, plan_acc = self._plan_speeds(k0, runs, run_ids, a_s, offs, src, K, i, j, srun, went, on_plan,
+                                                  k_plan)
+            # only where the firmware ramps as the plan did (its limit binds there: max_z_accel, the
+            # extruder's); elsewhere the output's acceleration (the header's) differs from the plan's
+            mv_ = ~hold
+            acc = np.zeros(len(i))
+            acc[mv_] = segment_limits(self.chain, Pr[i][mv_], Pr[j][mv_], de[mv_])[1]
+            fixed_v[hold | (np.abs(acc - plan_acc) > 1e-3 * np.maximum(plan_acc, 1.0))] = np.nan
         if self.chain is not None:
             pre = np.where(first_seg, run_pre[run_ids[srun]], 0.0)
+            wait = np.zeros(len(dt))
             v = solve_feeds(self.chain, self.timing, Pr[i], Pr[j], dt, de, hold, stop_first,
-                            open_end=runs[-1].kind == MOVE, pre_late=pre)
+                            open_end=runs[-1].kind == MOVE, pre_late=pre, wait_out=wait, fixed_v=fixed_v)
+            for q in np.nonzero(wait > 0)[0].tolist():  # (only ever a run's first segment)
+                ch.run_wait[int(run_ids[srun[q]])] = float(wait[q])
         else:
             v = self._firmware_feeds(d, dist, dt, hold, stop_first)
             v = np.where(hold, np.where(np.abs(de) > 1e-9, np.maximum(np.abs(de) / dt, 1e-3), dt), v)
@@ -423,11 +483,87 @@ class GcodeWriter:
             ch.run_lines[r] = (int(ends[m_] - cnt[m_]), int(ends[m_]))
         local = np.arange(len(i)) - (ends - cnt)[srun] + 1  # line of the segment within its run
         cu = catch[srun] & (i == offs[srun])
-        ch.seg_rows = np.stack([local, K[i], K[j], cu.astype(np.int64), np.full(len(i), self.stream)],
-                               1)[moving].astype(np.int64)
-        ch.seg_run = run_ids[srun][moving]
+        ka, kb = np.floor(K[i] + 1e-9), np.floor(K[j] + 1e-9)
+        rows = moving & (kb > ka)  # a segment to a rest end between two samples stands for none
+        fa, fb = np.round((K[i] - ka) * self.dt * 1e9), np.round((K[j] - kb) * self.dt * 1e9)
+        ch.seg_rows = np.stack([local, ka, kb, cu.astype(np.int64), np.full(len(i), self.stream), fa, fb],
+                               1)[rows].astype(np.int64)
+        ch.seg_run = run_ids[srun][rows]
         self.last_pt = Pr[last[-1]].copy()
         return ch
+
+    def _rest_end(self, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, k_plan: np.ndarray | None,
+                  on_plan: np.ndarray | None):
+        """Where and when a motion run (samples ``.. k0 + b - 1``) must end if its planned move comes
+        to rest between two samples: ``(point mm, time / dt, extruder mm, appended)``, else None.
+
+        The samples stop short of the rest point (by up to one sample of the deceleration); written
+        as they are, the firmware would brake to rest early and short, late by up to a sample (a
+        loss before every extruder-only move, dwell and full stop; with ``max_z_accel`` binding,
+        most of a layer change's drift).  The run ends on the plan's rest point at the plan's time
+        instead: a point appended after the last sample where that sample follows the plan, or,
+        where the last sample is within a micrometre of the rest point (the pin repair puts a free
+        command's last sample there), in its place (``appended`` 1 or 0).  None where the run does
+        not end its move, the move does not end at rest, or the command is elsewhere (a free
+        command turns round before or after the plan's stop).
+        """
+        if mv is None or k_plan is None or on_plan is None or mv.end_v_mm_s > 1e-9 or k_plan[b - 1] < 0:
+            return None
+        k_last = k0 + b - 1
+        k_end = mv.t_end_s / self.dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
+        if not (k_last < k_end - 1e-6 and k_end <= k_last + 1 + 1e-9):
+            return None
+        end = np.array(mv.end_mm[:3], float)
+        far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
+        if far and not on_plan[b - 1]:
+            return None
+        return end, k_end, float(mv.end_mm[3]), int(far)
+
+    def _plan_speeds(self, k0, runs, run_ids, a_s, offs, src, K, i, j, srun, went, on_plan, k_plan):
+        """The plan's peak speed (mm/s) along each segment whose ends both follow the plan (pinned,
+        or where limits bind), NaN elsewhere: the feed that makes the firmware's own ramps run the
+        plan (see :func:`ffcomp.gcode.feed_solve.solve_feeds`), and the plan's acceleration there.
+        A run's lead point follows the plan where the run leaves rest on the plan's time."""
+        op = on_plan[src] & (k_plan[src] >= 0)
+        op[offs] = np.asarray(went, bool)
+        on = op[i] & op[j]
+        out = np.full(len(i), np.nan)
+        if not on.any():
+            return out, np.zeros(len(i))
+        mvs = [runs[q].move for q in run_ids.tolist()]
+        a_s = np.asarray(a_s)
+        kofs = np.where(k_plan[a_s] >= 0, (k0 + a_s) - k_plan[a_s], 0)  # writer count - plan count
+        prm = np.array([(m.t_start_s, m.start_v_mm_s, m.cruise_v_mm_s, m.accel_mm_s2, m.accel_t_s, m.cruise_t_s,
+                         m.duration_s) if m is not None else (0, 0, 0, 0, 0, 0, 0) for m in mvs], float)
+        ok = np.array([m is not None for m in mvs])[srun] & on
+        t0, v0, vc, acc, ta, tc, dur = prm[srun].T
+        ti = np.clip((K[i] - kofs[srun]) * self.dt - t0, 0.0, dur)
+        tj = np.clip((K[j] - kofs[srun]) * self.dt - t0, 0.0, dur)
+
+        def v(t):
+            return np.maximum(np.where(t < ta, v0 + acc * t, np.where(t < ta + tc, vc, vc - acc * (t - ta - tc))), 0.0)
+
+        peak = np.where(tj <= ta, v(tj), np.where(ti >= ta + tc, v(ti), vc))
+        out[ok] = np.maximum(peak[ok], 1e-3)
+        return out, acc
+
+    def _rest_start(self, k0: int, a: int, mv: PlannedMove | None, k_plan: np.ndarray | None,
+                    on_plan: np.ndarray | None, lead_pt: np.ndarray, lead_k: float) -> float:
+        """When (time / dt, the writer's count) a motion run starting at sample ``k0 + a`` leaves its
+        lead point: the plan's start where its move starts from rest between two samples at the
+        point the writer left the nozzle, its first sample on the plan (else ``lead_k``, the previous
+        point's time).  From the
+        previous sample instead, the firmware would be asked to cover the first sample's distance
+        from rest in a whole sample, not in the part of it the plan moves (early, then late).
+        """
+        if (mv is None or k_plan is None or on_plan is None or not on_plan[a] or mv.start_v_mm_s > 1e-9
+                or k_plan[a] < 0 or lead_pt is None
+                or np.linalg.norm(np.round(mv.start_mm[:3], 4) - lead_pt) >= 1e-3):
+            return lead_k
+        k_go = mv.t_start_s / self.dt + (k0 + a - int(k_plan[a]))
+        if not (k0 + a - 1 - 1e-9 <= k_go < k0 + a - 1e-6):
+            return lead_k
+        return max(lead_k, k_go)
 
     def _extrusion(self, ch, de_ref, seg_run, ext_de, ext_runs) -> np.ndarray:
         """Relative extrusion of every segment and extruder-only move of a chunk, in written order.
@@ -559,13 +695,14 @@ class _Run(NamedTuple):
 class _Chunk:
     """The writer's numbers for one chunk (see :meth:`GcodeWriter._plan_chunk`)."""
 
-    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run")
+    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run", "run_wait")
 
     def __init__(self, n_runs: int):
         self.lines: list[str] = []
         self.run_lines = [(0, 0)] * n_runs
         self.extrude_de = [0.0] * n_runs
         self.extrude_v = [0.0] * n_runs  # feed of an extruder-only move written faster (0: as planned)
+        self.run_wait = [0.0] * n_runs  # a G4 before a motion run that leaves rest ahead of the clock, s
         self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
 

@@ -588,7 +588,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
             # zones) cannot take a command that accelerates harder than the plan: they follow
             # the plan, sample by sample, so the clock holds (counted in the summary)
-            dense = None
+            dense = shift = None
             if bound is not None:
                 # with the pin repair those moves are pinned (the plan, sample by sample): no blend
                 w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair)
@@ -599,7 +599,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                     fix |= dense
                     summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
             if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
-                zd, snapped = zlim.dense(meta["move_index"], moves, xyz)
+                zd, snapped, shift = zlim.dense(meta["move_index"], moves, xyz)
                 dense = zd if dense is None else (dense | zd)
                 fix |= snapped
             # the firmware refuses positions outside its limits: a correction that pokes past
@@ -632,7 +632,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 if new_stream:
                     pred.reset()
                 pred.push(qc, meta["q"], meta["xyz"])
-            writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense)
+            writer.feed(k_written, xyz * 1e3, meta["e"], meta["move_index"], meta["lineno"], dense,
+                        k_plan=meta.get("k"), plan_mm=meta["xyz"] * 1e3, t_shift=shift)
             k_written += len(qc)
             last_qc = qc[-1].copy()
             if progress is not None:
@@ -753,7 +754,8 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
         n_post = int(round(icfg.post_s / dt))
         qq, xx, ee, mi, ln = meta
         fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
-                  e=np.repeat(ee, n_post), move_index=np.full(n_post, REST_MOVE), lineno=np.repeat(ln, n_post))
+                  e=np.repeat(ee, n_post), move_index=np.full(n_post, REST_MOVE), lineno=np.repeat(ln, n_post),
+                  k=np.full(n_post, -1, np.int64))
 
     for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz, block_len=opts.block_len,
                              overlap=0, path=src, k_start=k_start):
@@ -788,10 +790,10 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 n_pre = inv_pre_samples(icfg, dt)
                 fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
                           e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_MOVE),
-                          lineno=np.repeat(blk.lineno[k:k + 1], n_pre))
+                          lineno=np.repeat(blk.lineno[k:k + 1], n_pre), k=np.full(n_pre, -1, np.int64))
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
-                      lineno=blk.lineno[sl])
+                      lineno=blk.lineno[sl], k=blk.k0 + np.arange(sl.start, sl.stop, dtype=np.int64))
             # the planner's exact rates only where the inverse uses them (by default it takes the
             # derivatives of the samples themselves)
             qd, qdd = (carriage_rates(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
@@ -940,8 +942,9 @@ class ZLimited:
         return b
 
     def dense(self, move_index: np.ndarray, moves: dict, xyz_m: np.ndarray, blend: int = 24,
-              min_step_m: float = 1.5e-6) -> tuple[np.ndarray, np.ndarray]:
-        """Mask of the samples written one by one, and of the samples moved onto a z reversal.
+              min_step_m: float = 1.5e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Mask of the samples written one by one, of the samples moved onto a z reversal, and
+        the time of the reversal (samples after the sample moved onto it; None if none moved).
 
         Written one by one: the samples of the limited moves and ``blend`` samples either side,
         except where the command moved less than ``min_step_m`` since the previous sample (at a
@@ -950,15 +953,19 @@ class ZLimited:
         by under a micrometre) onto the vertex of the parabola through it and its neighbours: the
         firmware stops at the written extreme point, and braking at ``max_z_accel`` onto a point
         short of the command's turning point would take longer than the command does (0.2-0.8 ms
-        late per reversal on ``other_delta``).  ``xyz_m``: (n, 3) the command, m.
+        late per reversal on ``other_delta``); the writer puts the point at the vertex's time (a
+        sample's time would leave the segments either side up to half a sample early and late).
+        ``xyz_m``: (n, 3) the command, m.
         """
         m = LimitBound._blend(_moves_where(move_index, moves, self.limited), blend) > 0
         prev = xyz_m[:1] if self.last is None else self.last[None]
         snapped = np.zeros(len(xyz_m), bool)
+        shift = None
         if m.any() and len(xyz_m) > 2:
             z = np.concatenate([prev[:, 2], xyz_m[:, 2]])
             dz = np.diff(z)
-            k = np.nonzero(m[:-1] & (dz[:-1] * dz[1:] < 0))[0]  # sample k: z_k is an extreme
+            # sample k: z_k is an extreme (not a rounding-level wobble where the z travel starts)
+            k = np.nonzero(m[:-1] & (dz[:-1] * dz[1:] < 0) & (np.minimum(np.abs(dz[:-1]), np.abs(dz[1:])) > 1e-8))[0]
             if k.size:
                 zm, z0, zp = z[k], z[k + 1], z[k + 2]
                 curv = zm - 2.0 * z0 + zp
@@ -969,13 +976,16 @@ class ZLimited:
                 nxt, prv = xyz_m[k + 1, :2], np.where((k > 0)[:, None], xyz_m[np.maximum(k - 1, 0), :2], prev[:, :2])
                 xyz_m[k, :2] += 0.5 * tau[:, None] * (nxt - prv)
                 snapped[k] = True
+                if k.size:
+                    shift = np.zeros(len(xyz_m))
+                    shift[k] = tau
         self.last = xyz_m[-1].copy()
         step = np.linalg.norm(np.diff(xyz_m, axis=0, prepend=prev), axis=1)
         keep = m & ((step >= min_step_m) | snapped)
         # the turning point is written; a sample just before it that is too close is not
         close = np.nonzero(snapped[1:] & (step[1:] < min_step_m))[0]
         keep[close] = False
-        return keep, snapped
+        return keep, snapped, shift
 
 
 class _NoAccel:

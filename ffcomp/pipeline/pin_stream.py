@@ -46,6 +46,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     buf_q = np.zeros((0, 3))
     buf_meta: dict[str, np.ndarray] | None = None
     buf_pin = np.zeros(0, bool)
+    buf_rest = np.zeros(0, bool)  # pinned to the next sample's rest position (see solve)
+    buf_qt = np.zeros((0, 3))  # that position
     repaired_upto = 0  # buffer rows before this belong to clusters already repaired
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
 
@@ -57,6 +59,20 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         qref = buf_meta["q"]
         jumps = np.nonzero(np.max(np.abs(np.diff(qref, axis=0)), axis=1) > jump_m)[0] + 1 if n > 1 else []
         bounds = np.r_[0, jumps, n].astype(int)
+        # the plan comes to rest between two samples before a pinned run where it stands still (a
+        # hold): the last sample before the run is pinned too, to the rest position, so the firmware
+        # stands there when the hold begins (rather than covering the last sub-sample of motion from
+        # rest after it) and the repair sees it (the command arrives there at the firmware's ramps)
+        orig = buf_pin & ~buf_rest
+        st = np.nonzero(orig[1:] & ~orig[:-1])[0]  # st free, st + 1 pinned
+        st = st[(st + 2 < n) | final]
+        if st.size:
+            nxt = np.minimum(st + 2, n - 1)
+            still = np.max(np.abs(qref[nxt] - qref[st + 1]), axis=1) < 1e-9
+            st = st[still & ~buf_rest[st]]
+            buf_rest[st] = buf_pin[st] = True
+            buf_qt[st] = qref[st + 1]
+        qtgt = np.where(buf_rest[:, None], buf_qt, qref)
         safe = n if final else max(n - M, 0)
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
             if not buf_pin[s0:s1].any():
@@ -74,21 +90,11 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
-                new = repair_window(responses.at(pose), old, qref[w0:w1], buf_pin[w0:w1], J, dt_s, cfg,
+                new = repair_window(responses.at(pose), old, qtgt[w0:w1], buf_pin[w0:w1], J, dt_s, cfg,
                                     cache=ops, key=key)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(buf_pin[a:b].sum())
-                # the plan comes to rest between two samples: the last point before a pinned run is
-                # already the rest position, so the firmware stands there when the hold begins
-                # (rather than covering the last sub-sample of motion from rest after it)
-                # (pinned runs where the plan stands still: holds, not pinned moves)
-                seg = buf_pin[w0:w1]
-                starts = np.nonzero(seg[1:] & ~seg[:-1])[0]  # new[starts] is free, new[starts + 1] pinned
-                qw = qref[w0:w1]
-                nxt = np.minimum(starts + 2, len(qw) - 1)
-                still = np.max(np.abs(qw[nxt] - qw[starts + 1]), axis=1) < 1e-9
-                new[starts[still]] = new[starts[still] + 1]
                 buf_q[w0:w1] = new
                 repaired_upto = b
         return safe
@@ -97,6 +103,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         pin = np.asarray(pin_fn(meta), bool)
         buf_q = np.vstack([buf_q, qc])
         buf_pin = np.concatenate([buf_pin, pin])
+        buf_rest = np.concatenate([buf_rest, np.zeros(len(pin), bool)])
+        buf_qt = np.vstack([buf_qt, np.zeros((len(pin), 3))])
         if buf_meta is None:
             buf_meta = {k: np.asarray(v) for k, v in meta.items()}
         else:
@@ -107,7 +115,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         while sizes and sizes[0] <= safe:
             k = sizes.popleft()
             out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
-            buf_q, buf_pin = buf_q[k:], buf_pin[k:]
+            buf_q, buf_pin, buf_rest, buf_qt = buf_q[k:], buf_pin[k:], buf_rest[k:], buf_qt[k:]
             buf_meta = {key: v[k:] for key, v in buf_meta.items()}
             repaired_upto = max(repaired_upto - k, 0)
             safe -= k

@@ -119,6 +119,7 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         if not len(R):
             return
         ka, kb, cu, stream = tab[j, 1], tab[j, 2], tab[j, 3].astype(bool), tab[j, 4]
+        fa, fb = tab[j, 5] * 1e-9, tab[j, 6] * 1e-9  # starts and ends between samples (rest points), s
         dur = R[:, 4] + R[:, 5] + R[:, 6]
         t0 = R[:, 7]
         # the absolute clock: a stream's sample k is due at anchor + k dt, the anchor being where the
@@ -126,10 +127,10 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         for s_ in np.unique(stream).tolist():
             if s_ not in anchor:
                 first = int(np.argmax(stream == s_))
-                anchor[s_] = float(t0[first] - ka[first] * dt)
+                anchor[s_] = float(t0[first] - ka[first] * dt - fa[first])
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
-        late = (t0 + dur) - (kb * dt + c)  # how late each segment ends, s
+        late = (t0 + dur) - (kb * dt + fb + c)  # how late each segment ends, s
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
@@ -141,7 +142,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         # the shape: each segment at the same share of its own duration (the limit applies to
         # this; the timing is the drift's business); the absolute clock: where the output is when
         # the command is due (drift included; reported)
-        tau_own = k / cnt[idx] * dur[idx]
+        span = cnt * dt + fb - fa  # the segment's intended duration
+        tau_own = np.clip((k * dt - fa[idx]) / span[idx], 0.0, 1.0) * dur[idx]
         tau_abs = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
         a_, v0, vc, ta, tc = R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5]
         P = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_own)[:, None] * geo[idx, 3:]
@@ -211,7 +213,8 @@ def shape_limit_um(opts) -> float:
 
 
 class _SegmentTable:
-    """The writer's segment table (int64 rows: output line, first and last sample, catch-up flag),
+    """The writer's segment table (int64 rows: output line, first and last sample, catch-up flag,
+    stream, start and end past those samples in ns),
     read forward in step with the re-planned moves, which come in line order."""
 
     def __init__(self, path: str | None, head_len: int):
