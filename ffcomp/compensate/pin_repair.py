@@ -67,6 +67,7 @@ class RepairConfig:
     tail_stride: int = 3
     edge_weight: float = 30.0
     edge_samples: float = 3.0
+    pin_z_before_hold: bool = True
 
 
 class PulseResponses:

@@ -417,12 +417,16 @@ class FbsStream:
         D = self.bounds[0]
         C = self.C
         ra = np.nonzero(np.isfinite(band[0][r]))[0]  # constraint rows the band covers
-        M, L = self.comp_fn(self.cpos[a + r[ra]], vref[ra], aref[ra])  # (R', K, C), (R', K)
         acc = B2 @ c + e2 + aref
+        val, vel = B0 @ c + e0, B1 @ c + e1 + vref
+        # the components along and across the command's own direction (the unbounded solution's):
+        # the firmware caps each written segment by its direction, and where the command
+        # pre-actuates a z move it turns steep while the reference still runs flat (a layer change
+        # without a retraction: up to 1.5 ms late on cube_prusa with other_delta's max_z_accel)
+        M, L = self.comp_fn(self.cpos[a + r[ra]], vel[ra], acc[ra])  # (R', K, C), (R', K)
         ref_k = np.einsum("rkc,rc->rk", M, aref[ra])
         now_k = np.einsum("rkc,rc->rk", M, acc[ra])
         Lb = np.maximum(L, np.abs(ref_k) * 1.0001)
-        val, vel = B0 @ c + e0, B1 @ c + e1 + vref
         box_bad = np.any(np.abs(val) > D) or np.any(np.abs(vel) > Vb) or np.any(np.abs(acc) > Ab)
         if not box_bad and not np.any(np.abs(now_k) > Lb):
             return c

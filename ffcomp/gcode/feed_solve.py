@@ -256,7 +256,14 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
         k_hold = b
         st.late_s += pre_late[a]
         if wait_out is not None and stop_first[a] and st.late_s < -1e-6:
-            wait_out[a], st.late_s = -st.late_s, 0.0
+            # keep the time the first segment needs beyond its share, leaving rest at the
+            # acceleration limit (a command that moves off harder than the firmware can)
+            vmax1, acc1 = segment_limits(lim, P0[a:a + 1], P1[a:a + 1], de[a:a + 1])
+            d1 = float(np.linalg.norm(P1[a] - P0[a]))
+            v1 = min(float(vmax1[0]), float(np.sqrt(2.0 * acc1[0] * d1)))
+            t1 = d1 / max(v1, 1e-9) + 0.5 * v1 / max(float(acc1[0]), 1e-9)  # from rest, as fast as it can
+            keep = min(max(t1 - D[a], 0.0), -st.late_s)
+            wait_out[a], st.late_s = -st.late_s - keep, -keep
         sl = slice(a, b)
         Fa = np.linalg.norm(P1[sl] - P0[sl], axis=1) / D[sl]
         end_open = open_end and b == n

@@ -390,15 +390,16 @@ class GcodeWriter:
             keep[at - 1] = True
         if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
             keep |= dense[src]
-        # leaving rest on time: a first sample within a micrometre of the start would be a hold,
+        forced = keep.copy()
+        keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
+        # a first sample within a micrometre of the run's lead point (leaving rest on time, or
+        # just past a corner the previous run ended on) would be a hold: a stop of the firmware,
         # and the segment after it would start from rest a sample late: it is not a point
-        w_ = np.nonzero(np.array(went, bool) & (n_s > 2))[0]
+        w_ = np.nonzero(n_s > 2)[0]
         if w_.size:
             o = offs[w_]
             near = np.linalg.norm(np.round(P[o + 1], 4) - np.round(P[o], 4), axis=1) < 1e-3
             keep[o[near] + 1] = False
-        forced = keep.copy()
-        keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         kidx = np.nonzero(keep)[0]
         if self.fit_points:  # the chosen points' values: the best time-linear fit of the samples
             # (not on moves with z travel, where max_z_accel * d/|dz| binds the firmware: there the
@@ -495,7 +496,8 @@ class GcodeWriter:
     def _rest_end(self, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, k_plan: np.ndarray | None,
                   on_plan: np.ndarray | None):
         """Where and when a motion run (samples ``.. k0 + b - 1``) must end if its planned move comes
-        to rest between two samples: ``(point mm, time / dt, extruder mm, appended)``, else None.
+        to rest (or, on the plan, to a corner) between two samples: ``(point mm, time / dt, extruder mm,
+        appended)``, else None.
 
         The samples stop short of the rest point (by up to one sample of the deceleration); written
         as they are, the firmware would brake to rest early and short, late by up to a sample (a
@@ -504,10 +506,15 @@ class GcodeWriter:
         instead: a point appended after the last sample where that sample follows the plan, or,
         where the last sample is within a micrometre of the rest point (the pin repair puts a free
         command's last sample there), in its place (``appended`` 1 or 0).  None where the run does
-        not end its move, the move does not end at rest, or the command is elsewhere (a free
-        command turns round before or after the plan's stop).
+        not end its move, or the command is elsewhere (a free command turns round before or after
+        the plan's stop).  Where the command follows the plan up to its last sample, a move that
+        ends at a corner passed at speed ends on the plan's corner at its time too (a pinned z-hop
+        before the travel: the firmware takes the corner as the plan does, instead of braking for a
+        corner moved up to a sample's travel away).
         """
-        if mv is None or k_plan is None or on_plan is None or mv.end_v_mm_s > 1e-9 or k_plan[b - 1] < 0:
+        if mv is None or k_plan is None or on_plan is None or k_plan[b - 1] < 0:
+            return None
+        if mv.end_v_mm_s > 1e-9 and not on_plan[b - 1]:
             return None
         k_last = k0 + b - 1
         k_end = mv.t_end_s / self.dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
@@ -515,7 +522,9 @@ class GcodeWriter:
             return None
         end = np.array(mv.end_mm[:3], float)
         far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
-        if far and not on_plan[b - 1]:
+        # an appended point is the plan's: the samples either side must be on the plan too (a
+        # free command after it would have to jump from the plan's point to its own)
+        if far and not (on_plan[b - 1] and b < len(on_plan) and on_plan[b]):
             return None
         return end, k_end, float(mv.end_mm[3]), int(far)
 

@@ -47,6 +47,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     buf_meta: dict[str, np.ndarray] | None = None
     buf_pin = np.zeros(0, bool)
     buf_rest = np.zeros(0, bool)  # pinned to the next sample's rest position (see solve)
+    buf_next = np.zeros(0, bool)  # pinned after a moving pinned run's end (see solve)
     buf_qt = np.zeros((0, 3))  # that position
     repaired_upto = 0  # buffer rows before this belong to clusters already repaired
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
@@ -63,7 +64,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         # hold): the last sample before the run is pinned too, to the rest position, so the firmware
         # stands there when the hold begins (rather than covering the last sub-sample of motion from
         # rest after it) and the repair sees it (the command arrives there at the firmware's ramps)
-        orig = buf_pin & ~buf_rest
+        orig = buf_pin & ~buf_rest & ~buf_next
         st = np.nonzero(orig[1:] & ~orig[:-1])[0]  # st free, st + 1 pinned
         st = st[(st + 2 < n) | final]
         if st.size:
@@ -72,6 +73,17 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             st = st[still & ~buf_rest[st]]
             buf_rest[st] = buf_pin[st] = True
             buf_qt[st] = qref[st + 1]
+        # a pinned run that moves (a z-hop) up to where its move ends takes the next move's first
+        # sample too, on the plan: the writer then ends the run on the plan's corner at its time
+        # (the firmware takes the corner as the plan does, not a sample early)
+        orig = buf_pin & ~buf_next
+        en = np.nonzero(orig[:-1] & ~orig[1:])[0]  # en pinned, en + 1 free
+        en = en[(en > 0) & ~buf_next[np.minimum(en + 1, n - 1)]]
+        mi = buf_meta.get("move_index")
+        if en.size and mi is not None:
+            turn = (mi[en + 1] != mi[en]) & (np.max(np.abs(qref[en] - qref[en - 1]), axis=1) > 1e-9)
+            en = en[turn]
+            buf_next[en + 1] = buf_pin[en + 1] = True
         qtgt = np.where(buf_rest[:, None], buf_qt, qref)
         safe = n if final else max(n - M, 0)
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
@@ -104,6 +116,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         buf_q = np.vstack([buf_q, qc])
         buf_pin = np.concatenate([buf_pin, pin])
         buf_rest = np.concatenate([buf_rest, np.zeros(len(pin), bool)])
+        buf_next = np.concatenate([buf_next, np.zeros(len(pin), bool)])
         buf_qt = np.vstack([buf_qt, np.zeros((len(pin), 3))])
         if buf_meta is None:
             buf_meta = {k: np.asarray(v) for k, v in meta.items()}
@@ -116,6 +129,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             k = sizes.popleft()
             out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
             buf_q, buf_pin, buf_rest, buf_qt = buf_q[k:], buf_pin[k:], buf_rest[k:], buf_qt[k:]
+            buf_next = buf_next[k:]
             buf_meta = {key: v[k:] for key, v in buf_meta.items()}
             repaired_upto = max(repaired_upto - k, 0)
             safe -= k
