@@ -53,6 +53,10 @@ class RepairConfig:
     accel_xy_m_s2, accel_z_m_s2 : ... this much nozzle acceleration of the correction in one sample
         (in XY and in z), m/s^2
     cell_xy_m, cell_z_m : pose grid of the cached pulse responses, m
+    pin_z_after_hold, pin_z_before_hold : pin a move with z travel right after / right before an
+        extruder-only move or dwell (a z-hop after a retraction, the move down before an unretract)
+    edge_weight, edge_samples : the acceleration penalty is this much heavier within about this many
+        samples of a pin (the firmware starts there from the plan's state)
     """
 
     margin_s: float = 0.04

@@ -524,8 +524,14 @@ class GcodeWriter:
         far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
         # an appended point is the plan's: the samples either side must be on the plan too (a
         # free command after it would have to jump from the plan's point to its own)
-        if far and not (on_plan[b - 1] and b < len(on_plan) and on_plan[b]):
+        if far and not on_plan[b - 1]:
             return None
+        if far and b < len(on_plan) and not on_plan[b]:
+            return None
+        if far and b == len(on_plan):  # the next sample comes with the next chunk: a hold stands there
+            nxt = self.moves.get(mv.index + 1)
+            if nxt is None or nxt.kind == MOVE:
+                return None
         return end, k_end, float(mv.end_mm[3]), int(far)
 
     def _plan_speeds(self, k0, runs, run_ids, a_s, offs, src, K, i, j, srun, went, on_plan, k_plan):

@@ -647,7 +647,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                     return True
                 return bound is not None and (bound.bound(mv) or (
                     opts.repair.pin_z_after_hold and _z_hop(mv) and bound.z_after_hold(mv, moves))
-                    or (opts.repair.pin_z_before_hold and _z_hop(mv) and bound.z_before_hold(mv, moves)))
+                    or (opts.repair.pin_z_before_hold and _z_hop(mv) and bound.z_before_hold(mv, moves)
+                        and zlim is not None and zlim.limited(mv)))
 
             def pins(meta):
                 return _moves_where(meta["move_index"], moves, pinned)
@@ -889,9 +890,9 @@ class LimitBound:
 
     def z_before_hold(self, mv, moves: dict) -> bool:
         """A move with z travel right before an extruder-only move or dwell (the z move down to
-        the layer before an unretract): the pin repair settles the command before the hold
-        without the firmware's ``max_z_accel`` bound, and the z move would run late; its z
-        follows the plan.  (The next move is known by then: the commands come hundreds of
+        the layer before an unretract): where ``max_z_accel`` binds it (:class:`ZLimited`), the pin
+        repair would settle the command before the hold without that bound, and the z move would
+        run late; it follows the plan.  (The next move is known by then: the commands come hundreds of
         milliseconds behind the plan.)"""
         if mv.kind != "move" or abs(mv.end_mm[2] - mv.start_mm[2]) < 1e-9:
             return False
