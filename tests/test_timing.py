@@ -163,3 +163,26 @@ def test_layer_changes_run_on_the_plan_clock(tmp_path, profile, name):
         j = max(k for k in range(i) if lines[k].startswith("G1 E-0.8"))
         feeds = [float(ln.split("F")[1].split()[0]) for ln in lines[j + 1:i] if ln.startswith("G1 X")]
         assert feeds and min(feeds) > 60.0, feeds
+
+
+def test_fast_z_travel_after_a_pinned_z_hop_keeps_the_clock(tmp_path):
+    """A small random file (hypothesis found it): an unretract, a z move pinned after it, then a
+    fast z move on other_delta's max_z_accel = 3000.  The pin repair's correction on that fast
+    steep move bent its path more than Klipper's junction rule lets a segment capped at
+    ``max_z_accel * d/|dz|`` turn: 7.7 ms late.  The repair penalises the correction's
+    acceleration harder in such windows (``RepairConfig.steep_accel_factor``)."""
+    from ffcomp.compensate.pin_repair import RepairConfig
+
+    text = ("G90\nM83\nG1 X28.400 Y18.138 Z3.899 F14873\nG1 E0.8 F2100\nG1 Z6.818 F8700\nG1 Z8.582 F6334\n"
+            "G1 X2.522 Y10.800 E1.4840 F5071\nG1 E0.8 F2100\nG1 X0.136 Y-0.062 Z11.366 E-0.4053 F8511\n"
+            "G1 X-31.501 Y-14.295 Z12.358 F4599\nG1 X-13.010 Y3.042 F2853\nG1 X-8.269 Y-17.755 F12792\n")
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    drift = {}
+    for f in (1.0, RepairConfig().steep_accel_factor):
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
+                            CompensateOptions(predict=False, repair=RepairConfig(steep_accel_factor=f),
+                                              self_check_drift_ms=1e9))
+        drift[f] = abs(s.self_check_drift_ms)
+    assert drift[1.0] > 3.0  # the case
+    assert drift[RepairConfig().steep_accel_factor] < 1.0, drift

@@ -57,6 +57,9 @@ class RepairConfig:
         extruder-only move or dwell (a z-hop after a retraction, the move down before an unretract)
     edge_weight, edge_samples : the acceleration penalty is this much heavier within about this many
         samples of a pin (the firmware starts there from the plan's state)
+    steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
+        acceleration scales above are divided by this (the firmware caps those segments and their
+        junctions at ``max_z_accel * d/|dz|``)
     """
 
     margin_s: float = 0.04
@@ -72,6 +75,7 @@ class RepairConfig:
     edge_weight: float = 30.0
     edge_samples: float = 3.0
     pin_z_before_hold: bool = True
+    steep_accel_factor: float = 5.0
 
 
 class PulseResponses:

@@ -654,7 +654,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             def pins(meta):
                 return moves_where(meta["move_index"], moves, pinned)
 
-            stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M)
+            steep = (lambda meta: moves_where(meta["move_index"], moves, zlim.limited)) if zlim is not None else None
+            stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep)
         for qc, meta in stream:
             emit(qc, meta)
         if cuts is not None:

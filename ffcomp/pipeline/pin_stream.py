@@ -11,6 +11,7 @@ the delay is a window plus a margin; a homing jump (a new stream) closes a windo
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import replace
 from typing import Callable, Iterable, Iterator
 
 import numpy as np
@@ -31,11 +32,15 @@ class PinStats:
 
 
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
-                 cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3
-                 ) -> Iterator[tuple[np.ndarray, dict]]:
+                 cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3,
+                 steep_fn: Callable[[dict], np.ndarray] | None = None) -> Iterator[tuple[np.ndarray, dict]]:
     """Yield ``(q_cmd, meta)`` chunks with the pinned samples held on the plan (``meta["q"]``).
 
-    ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives.
+    ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives; ``steep_fn(meta)``
+    (optional) the samples of moves the firmware's ``max_z_accel`` binds: a window whose free
+    samples touch them penalises the correction's acceleration ``cfg.steep_accel_factor`` times
+    harder (in acceleration), since the firmware caps those segments, their junctions included, at
+    ``max_z_accel * d/|dz|`` (a fast z move right after a pinned z-hop ran 7.7 ms late without).
     """
     stats = stats if stats is not None else PinStats()
     responses = PulseResponses(model, dt_s, cfg)
@@ -49,6 +54,9 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     buf_rest = np.zeros(0, bool)  # pinned to the next sample's rest position (see solve)
     buf_next = np.zeros(0, bool)  # pinned after a moving pinned run's end (see solve)
     buf_qt = np.zeros((0, 3))  # that position
+    buf_steep = np.zeros(0, bool)  # samples of moves max_z_accel binds (steep_fn)
+    f = max(float(cfg.steep_accel_factor), 1e-9)
+    cfg_steep = replace(cfg, accel_xy_m_s2=cfg.accel_xy_m_s2 / f, accel_z_m_s2=cfg.accel_z_m_s2 / f)
     repaired_upto = 0  # buffer rows before this belong to clusters already repaired
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
 
@@ -102,8 +110,9 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
-                new = repair_window(responses.at(pose), old, qtgt[w0:w1], buf_pin[w0:w1], J, dt_s, cfg,
-                                    cache=ops, key=key)
+                steep = bool(np.any(buf_steep[w0:w1] & ~buf_pin[w0:w1]))
+                new = repair_window(responses.at(pose), old, qtgt[w0:w1], buf_pin[w0:w1], J, dt_s,
+                                    cfg_steep if steep else cfg, cache=ops, key=(key, steep))
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(buf_pin[a:b].sum())
@@ -117,6 +126,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         buf_pin = np.concatenate([buf_pin, pin])
         buf_rest = np.concatenate([buf_rest, np.zeros(len(pin), bool)])
         buf_next = np.concatenate([buf_next, np.zeros(len(pin), bool)])
+        buf_steep = np.concatenate([buf_steep, np.asarray(steep_fn(meta), bool) if steep_fn is not None
+                                    else np.zeros(len(pin), bool)])
         buf_qt = np.vstack([buf_qt, np.zeros((len(pin), 3))])
         if buf_meta is None:
             buf_meta = {k: np.asarray(v) for k, v in meta.items()}
@@ -129,7 +140,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             k = sizes.popleft()
             out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
             buf_q, buf_pin, buf_rest, buf_qt = buf_q[k:], buf_pin[k:], buf_rest[k:], buf_qt[k:]
-            buf_next = buf_next[k:]
+            buf_next, buf_steep = buf_next[k:], buf_steep[k:]
             buf_meta = {key: v[k:] for key, v in buf_meta.items()}
             repaired_upto = max(repaired_upto - k, 0)
             safe -= k
