@@ -45,6 +45,7 @@ from .chain_plan import ChainLimits, segment_limits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
+from .plan_clock import plan_speeds, rest_end, rest_start
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
@@ -217,7 +218,8 @@ class GcodeWriter:
         ``k_plan``: each sample's index on the plan's grid (print time ``k_plan dt``; -1 for the rest
         samples a stream adds) and ``plan_mm`` the plan's nozzle positions (n, 3): with them, where the
         command follows the plan, a run whose move comes to rest between samples ends on the plan's
-        rest point at the plan's time and one that leaves rest starts on time (:meth:`_rest_end`).
+        rest point at the plan's time and one that leaves rest starts on time
+        (:mod:`ffcomp.gcode.plan_clock`).
         ``t_shift``: where a point is due off its sample's time (a turning point), samples.
 
         The chunk is cut into runs of one planned move.  The numbers of every motion run (point
@@ -308,8 +310,8 @@ class GcodeWriter:
         R = len(runs)
         ch = _Chunk(R)
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
-        rest_end = []  # per motion run: (point mm, time / dt, e mm, appended) or None (see _rest_end)
-        went = []  # per motion run: it leaves rest on the plan's time (see _rest_start)
+        run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
+        went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
         last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
@@ -326,7 +328,7 @@ class GcodeWriter:
                 pend += (dur if first else 0.0) - (k0 + b - 1 - last_k) * self.dt
             if kind == MOVE:
                 # a move that starts from rest between two samples starts on the plan's time
-                k_go = self._rest_start(k0, a, mv, k_plan, on_plan, last_pt, last_k)
+                k_go = rest_start(self.dt, k0, a, mv, k_plan, on_plan, last_pt, last_k)
                 went.append(k_go != last_k)
                 run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
                 run_ids.append(r)
@@ -338,8 +340,9 @@ class GcodeWriter:
                 catch.append(after_hold and b - a + 1 > 2)
                 follows_hold[r] = after_hold
                 last_pt, after_hold = np.round(X[b - 1], 4), False  # as written
-                end = self._rest_end(k0, b, X, mv, k_plan, on_plan)
-                rest_end.append(end)
+                end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
+                               self.moves.get(mv.index + 1) if mv is not None else None)
+                run_ends.append(end)
                 if end is not None:  # the run ends where and when the plan comes to rest
                     last_pt = np.round(end[0], 4)
                     n_s[-1] += end[3]
@@ -349,8 +352,8 @@ class GcodeWriter:
                     ext_runs.append(r)
                 after_hold = True
             last_k, e_last = k0 + b - 1 + (float(t_shift[b - 1]) if t_shift is not None else 0.0), float(E[b - 1])
-            if kind == MOVE and rest_end[-1] is not None:
-                last_k, e_last = rest_end[-1][1], rest_end[-1][2]
+            if kind == MOVE and run_ends[-1] is not None:
+                last_k, e_last = run_ends[-1][1], run_ends[-1][2]
             elif kind != MOVE and mv is not None:
                 # written whole (its planned extrusion): the next segment extrudes from its end, not
                 # from the last sample's (which a retraction ending between samples has not reached)
@@ -376,7 +379,7 @@ class GcodeWriter:
             K += t_shift[src]
         K[offs] = lead_k
         last = offs + n_s - 1
-        ends = [(m_, e) for m_, e in enumerate(rest_end) if e is not None]
+        ends = [(m_, e) for m_, e in enumerate(run_ends) if e is not None]
         if ends:  # (appended after the run's last sample, or in its place)
             at = last[[m_ for m_, _ in ends]]
             P[at] = np.array([e[0] for _, e in ends])
@@ -424,8 +427,8 @@ class GcodeWriter:
         stop_first = first_seg & follows_hold[run_ids[srun]]
         fixed_v = None
         if self.chain is not None and on_plan is not None and k_plan is not None:
-            fixed_v, plan_acc = self._plan_speeds(k0, runs, run_ids, a_s, offs, src, K, i, j, srun, went, on_plan,
-                                                  k_plan)
+            fixed_v, plan_acc = plan_speeds(self.dt, k0, [runs[q].move for q in run_ids.tolist()], a_s, offs,
+                                            src, K, i, j, srun, went, on_plan, k_plan)
             # only where the firmware ramps as the plan did (its limit binds there: max_z_accel, the
             # extruder's); elsewhere the output's acceleration (the header's) differs from the plan's
             mv_ = ~hold
@@ -492,93 +495,6 @@ class GcodeWriter:
         ch.seg_run = run_ids[srun][rows]
         self.last_pt = Pr[last[-1]].copy()
         return ch
-
-    def _rest_end(self, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, k_plan: np.ndarray | None,
-                  on_plan: np.ndarray | None):
-        """Where and when a motion run (samples ``.. k0 + b - 1``) must end if its planned move comes
-        to rest (or, on the plan, to a corner) between two samples: ``(point mm, time / dt, extruder mm,
-        appended)``, else None.
-
-        The samples stop short of the rest point (by up to one sample of the deceleration); written
-        as they are, the firmware would brake to rest early and short, late by up to a sample (a
-        loss before every extruder-only move, dwell and full stop; with ``max_z_accel`` binding,
-        most of a layer change's drift).  The run ends on the plan's rest point at the plan's time
-        instead: a point appended after the last sample where that sample follows the plan, or,
-        where the last sample is within a micrometre of the rest point (the pin repair puts a free
-        command's last sample there), in its place (``appended`` 1 or 0).  None where the run does
-        not end its move, or the command is elsewhere (a free command turns round before or after
-        the plan's stop).  Where the command follows the plan up to its last sample, a move that
-        ends at a corner passed at speed ends on the plan's corner at its time too (a pinned z-hop
-        before the travel: the firmware takes the corner as the plan does, instead of braking for a
-        corner moved up to a sample's travel away).
-        """
-        if mv is None or k_plan is None or on_plan is None or k_plan[b - 1] < 0:
-            return None
-        if mv.end_v_mm_s > 1e-9 and not on_plan[b - 1]:
-            return None
-        k_last = k0 + b - 1
-        k_end = mv.t_end_s / self.dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
-        if not (k_last < k_end - 1e-6 and k_end <= k_last + 1 + 1e-9):
-            return None
-        end = np.array(mv.end_mm[:3], float)
-        far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
-        # an appended point is the plan's: the samples either side must be on the plan too (a
-        # free command after it would have to jump from the plan's point to its own)
-        if far and not on_plan[b - 1]:
-            return None
-        if far and b < len(on_plan) and not on_plan[b]:
-            return None
-        if far and b == len(on_plan):  # the next sample comes with the next chunk: a hold stands there
-            nxt = self.moves.get(mv.index + 1)
-            if nxt is None or nxt.kind == MOVE:
-                return None
-        return end, k_end, float(mv.end_mm[3]), int(far)
-
-    def _plan_speeds(self, k0, runs, run_ids, a_s, offs, src, K, i, j, srun, went, on_plan, k_plan):
-        """The plan's peak speed (mm/s) along each segment whose ends both follow the plan (pinned,
-        or where limits bind), NaN elsewhere: the feed that makes the firmware's own ramps run the
-        plan (see :func:`ffcomp.gcode.feed_solve.solve_feeds`), and the plan's acceleration there.
-        A run's lead point follows the plan where the run leaves rest on the plan's time."""
-        op = on_plan[src] & (k_plan[src] >= 0)
-        op[offs] = np.asarray(went, bool)
-        on = op[i] & op[j]
-        out = np.full(len(i), np.nan)
-        if not on.any():
-            return out, np.zeros(len(i))
-        mvs = [runs[q].move for q in run_ids.tolist()]
-        a_s = np.asarray(a_s)
-        kofs = np.where(k_plan[a_s] >= 0, (k0 + a_s) - k_plan[a_s], 0)  # writer count - plan count
-        prm = np.array([(m.t_start_s, m.start_v_mm_s, m.cruise_v_mm_s, m.accel_mm_s2, m.accel_t_s, m.cruise_t_s,
-                         m.duration_s) if m is not None else (0, 0, 0, 0, 0, 0, 0) for m in mvs], float)
-        ok = np.array([m is not None for m in mvs])[srun] & on
-        t0, v0, vc, acc, ta, tc, dur = prm[srun].T
-        ti = np.clip((K[i] - kofs[srun]) * self.dt - t0, 0.0, dur)
-        tj = np.clip((K[j] - kofs[srun]) * self.dt - t0, 0.0, dur)
-
-        def v(t):
-            return np.maximum(np.where(t < ta, v0 + acc * t, np.where(t < ta + tc, vc, vc - acc * (t - ta - tc))), 0.0)
-
-        peak = np.where(tj <= ta, v(tj), np.where(ti >= ta + tc, v(ti), vc))
-        out[ok] = np.maximum(peak[ok], 1e-3)
-        return out, acc
-
-    def _rest_start(self, k0: int, a: int, mv: PlannedMove | None, k_plan: np.ndarray | None,
-                    on_plan: np.ndarray | None, lead_pt: np.ndarray, lead_k: float) -> float:
-        """When (time / dt, the writer's count) a motion run starting at sample ``k0 + a`` leaves its
-        lead point: the plan's start where its move starts from rest between two samples at the
-        point the writer left the nozzle, its first sample on the plan (else ``lead_k``, the previous
-        point's time).  From the
-        previous sample instead, the firmware would be asked to cover the first sample's distance
-        from rest in a whole sample, not in the part of it the plan moves (early, then late).
-        """
-        if (mv is None or k_plan is None or on_plan is None or not on_plan[a] or mv.start_v_mm_s > 1e-9
-                or k_plan[a] < 0 or lead_pt is None
-                or np.linalg.norm(np.round(mv.start_mm[:3], 4) - lead_pt) >= 1e-3):
-            return lead_k
-        k_go = mv.t_start_s / self.dt + (k0 + a - int(k_plan[a]))
-        if not (k0 + a - 1 - 1e-9 <= k_go < k0 + a - 1e-6):
-            return lead_k
-        return max(lead_k, k_go)
 
     def _extrusion(self, ch, de_ref, seg_run, ext_de, ext_runs) -> np.ndarray:
         """Relative extrusion of every segment and extruder-only move of a chunk, in written order.

@@ -1,0 +1,108 @@
+"""Where the plan's stops and corners fall between two samples: the times and points the writer
+(:mod:`ffcomp.gcode.writer`) puts there so the firmware runs the written chain on the plan's clock.
+
+The samples sit on a fixed grid; the plan comes to rest (before an extruder-only move, a dwell, a
+reversal), leaves rest and turns its corners between two of them, and the firmware ramps from
+and to exactly those points.  Where the compensated command follows the plan there (pinned, or
+where the firmware's limits bind), these kernels give a run's end point and time
+(:func:`rest_end`), the time it leaves rest (:func:`rest_start`) and the plan's own speeds along
+segments that follow it (:func:`plan_speeds`).  Times are in samples of the writer's count
+(``k0 + index``; ``k_plan`` maps samples to the plan's grid), ``dt`` in s, positions in mm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .moves import MOVE, PlannedMove
+
+__all__ = ["rest_end", "rest_start", "plan_speeds"]
+
+
+def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, k_plan: np.ndarray | None,
+             on_plan: np.ndarray | None, next_move: PlannedMove | None):
+    """Where and when a motion run (samples ``.. k0 + b - 1``) must end if its planned move comes
+    to rest (or, on the plan, to a corner) between two samples: ``(point mm, time / dt, extruder mm,
+    appended)``, else None.
+
+    The samples stop short of the rest point (by up to one sample of the deceleration); written
+    as they are, the firmware would brake to rest early and short, late by up to a sample (a
+    loss before every extruder-only move, dwell and full stop; with ``max_z_accel`` binding,
+    most of a layer change's drift).  The run ends on the plan's rest point at the plan's time
+    instead: a point appended after the last sample where that sample follows the plan, or,
+    where the last sample is within a micrometre of the rest point (the pin repair puts a free
+    command's last sample there), in its place (``appended`` 1 or 0).  None where the run does
+    not end its move, or the command is elsewhere (a free command turns round before or after
+    the plan's stop).  Where the command follows the plan up to its last sample, a move that
+    ends at a corner passed at speed ends on the plan's corner at its time too (a pinned z-hop
+    before the travel: the firmware takes the corner as the plan does, instead of braking for a
+    corner moved up to a sample's travel away).
+    """
+    if mv is None or k_plan is None or on_plan is None or k_plan[b - 1] < 0:
+        return None
+    if mv.end_v_mm_s > 1e-9 and not on_plan[b - 1]:
+        return None
+    k_last = k0 + b - 1
+    k_end = mv.t_end_s / dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
+    if not (k_last < k_end - 1e-6 and k_end <= k_last + 1 + 1e-9):
+        return None
+    end = np.array(mv.end_mm[:3], float)
+    far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
+    # an appended point is the plan's: the samples either side must be on the plan too (a
+    # free command after it would have to jump from the plan's point to its own)
+    if far and not on_plan[b - 1]:
+        return None
+    if far and b < len(on_plan) and not on_plan[b]:
+        return None
+    if far and b == len(on_plan):  # the next sample comes with the next chunk: a hold stands there
+        if next_move is None or next_move.kind == MOVE:
+            return None
+    return end, k_end, float(mv.end_mm[3]), int(far)
+
+
+def rest_start(dt: float, k0: int, a: int, mv: PlannedMove | None, k_plan: np.ndarray | None,
+               on_plan: np.ndarray | None, lead_pt: np.ndarray, lead_k: float) -> float:
+    """When (time / dt, the writer's count) a motion run starting at sample ``k0 + a`` leaves its
+    lead point: the plan's start where its move starts from rest between two samples at the
+    point the writer left the nozzle, its first sample on the plan (else ``lead_k``, the previous
+    point's time).  From the previous sample instead, the firmware would be asked to cover the
+    first sample's distance from rest in a whole sample, not in the part of it the plan moves
+    (early, then late).
+    """
+    if (mv is None or k_plan is None or on_plan is None or not on_plan[a] or mv.start_v_mm_s > 1e-9
+            or k_plan[a] < 0 or lead_pt is None
+            or np.linalg.norm(np.round(mv.start_mm[:3], 4) - lead_pt) >= 1e-3):
+        return lead_k
+    k_go = mv.t_start_s / dt + (k0 + a - int(k_plan[a]))
+    if not (k0 + a - 1 - 1e-9 <= k_go < k0 + a - 1e-6):
+        return lead_k
+    return max(lead_k, k_go)
+
+
+def plan_speeds(dt: float, k0: int, mvs: list, a_s, offs, src, K, i, j, srun, went, on_plan, k_plan):
+    """The plan's peak speed (mm/s) along each segment ``i -> j`` (points of the motion runs whose
+    moves are ``mvs``) whose ends both follow the plan (pinned, or where limits bind), NaN
+    elsewhere: the feed that makes the firmware's own ramps run the plan (see
+    :func:`ffcomp.gcode.feed_solve.solve_feeds`), and the plan's acceleration along each segment.
+    A run's lead point follows the plan where the run leaves rest on the plan's time (``went``)."""
+    op = on_plan[src] & (k_plan[src] >= 0)
+    op[offs] = np.asarray(went, bool)
+    on = op[i] & op[j]
+    out = np.full(len(i), np.nan)
+    if not on.any():
+        return out, np.zeros(len(i))
+    a_s = np.asarray(a_s)
+    kofs = np.where(k_plan[a_s] >= 0, (k0 + a_s) - k_plan[a_s], 0)  # writer count - plan count
+    prm = np.array([(m.t_start_s, m.start_v_mm_s, m.cruise_v_mm_s, m.accel_mm_s2, m.accel_t_s, m.cruise_t_s,
+                     m.duration_s) if m is not None else (0, 0, 0, 0, 0, 0, 0) for m in mvs], float)
+    ok = np.array([m is not None for m in mvs])[srun] & on
+    t0, v0, vc, acc, ta, tc, dur = prm[srun].T
+    ti = np.clip((K[i] - kofs[srun]) * dt - t0, 0.0, dur)
+    tj = np.clip((K[j] - kofs[srun]) * dt - t0, 0.0, dur)
+
+    def v(t):
+        return np.maximum(np.where(t < ta, v0 + acc * t, np.where(t < ta + tc, vc, vc - acc * (t - ta - tc))), 0.0)
+
+    peak = np.where(tj <= ta, v(tj), np.where(ti >= ta + tc, v(ti), vc))
+    out[ok] = np.maximum(peak[ok], 1e-3)
+    return out, acc

@@ -1,0 +1,78 @@
+"""The writer's times and points where the plan's stops fall between samples
+(:mod:`ffcomp.gcode.plan_clock`), against a trapezoid computed by hand."""
+
+import numpy as np
+import pytest
+
+from ffcomp.gcode.moves import PlannedMove
+from ffcomp.gcode.plan_clock import plan_speeds, rest_end, rest_start
+
+DT = 1e-3
+
+
+def _z_move(t0=0.0046, dz=0.2, a=3000.0):
+    """A z move from rest to rest at (0, 0, 1) -> (0, 0, 1 + dz), a triangle at ``a`` (mm/s^2)."""
+    t = np.sqrt(dz / a)  # each ramp
+    v = a * t
+    return PlannedMove(0, 1, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz, (0.0, 0.0, 1.0, 0.0),
+                       0.0, v, 0.0, a, t, 0.0, t)
+
+
+def _z_at(mv, t):
+    """The trapezoid's z at print time ``t`` (s), mm."""
+    a, ta = mv.accel_mm_s2, mv.accel_t_s
+    tau = np.clip(t - mv.t_start_s, 0.0, mv.duration_s)
+    s = np.where(tau < ta, 0.5 * a * tau**2, mv.distance_mm - 0.5 * a * (mv.duration_s - tau) ** 2)
+    return 1.0 + s
+
+
+def test_a_run_ends_on_the_rest_point_at_the_plans_time():
+    mv = _z_move()
+    k = np.arange(0, 25)  # the plan's grid; the writer counts 100 samples more (a stream's pre-roll)
+    X = np.zeros((len(k), 3))
+    X[:, 2] = _z_at(mv, k * DT)
+    b = int(np.ceil(mv.t_end_s / DT))  # samples 0 .. b-1 belong to the move
+    on = np.ones(len(k), bool)
+    end = rest_end(DT, 100, b, X, mv, k, on, None)
+    assert end is not None
+    pt, k_end, e, appended = end
+    assert k_end == pytest.approx(mv.t_end_s / DT + 100, abs=1e-9) and appended == 1
+    np.testing.assert_allclose(pt, mv.end_mm[:3])
+    # a free command (not on the plan) turns elsewhere: no point of the plan's is put there
+    off = on.copy()
+    off[b - 1] = False
+    assert rest_end(DT, 100, b, X, mv, k, off, None) is None
+    # the last sample within a micrometre of the rest point: that sample takes the plan's time instead
+    X2 = X.copy()
+    X2[b - 1] = mv.end_mm[:3]
+    assert rest_end(DT, 100, b, X2, mv, k, off, None)[3] == 0
+
+
+def test_a_run_leaves_rest_at_the_plans_time():
+    mv = _z_move(t0=0.0046)
+    k = np.arange(0, 25)
+    a = int(np.ceil(mv.t_start_s / DT))  # the move's first sample
+    on = np.ones(len(k), bool)
+    lead = np.round(np.array(mv.start_mm[:3]), 4)
+    assert rest_start(DT, 100, a, mv, k, on, lead, 100 + a - 1) == pytest.approx(100 + mv.t_start_s / DT)
+    # elsewhere than the start, or not on the plan: from the previous point, as before
+    assert rest_start(DT, 100, a, mv, k, on, lead + 0.01, 100 + a - 1) == 100 + a - 1
+    assert rest_start(DT, 100, a, mv, k, ~on, lead, 100 + a - 1) == 100 + a - 1
+
+
+def test_plan_speeds_are_the_trapezoids_peak_along_each_segment():
+    mv = _z_move(t0=0.0)
+    n = int(np.ceil(mv.t_end_s / DT))
+    K = np.arange(n + 1, dtype=float)
+    K[-1] = mv.t_end_s / DT
+    i, j = np.arange(n), np.arange(1, n + 1)
+    src = np.minimum(np.arange(n + 1), n - 1)
+    v, acc = plan_speeds(DT, 0, [mv], [0], np.array([0]), src, K, i, j, np.zeros(n, int), [True],
+                         np.ones(n, bool), np.arange(n))
+    t_mid = mv.accel_t_s
+    speed = lambda t: np.where(t < t_mid, mv.accel_mm_s2 * t, mv.accel_mm_s2 * (mv.duration_s - t))  # noqa: E731
+    want = np.maximum(speed(K[i] * DT), speed(K[j] * DT))
+    peak = (K[i] * DT < t_mid) & (K[j] * DT > t_mid)
+    want[peak] = mv.cruise_v_mm_s
+    np.testing.assert_allclose(v, want, rtol=1e-9, atol=1e-3)
+    assert np.all(acc == mv.accel_mm_s2)
