@@ -109,6 +109,7 @@ class FbsStream:
         self.comp_fn = None
         self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
+        self.qp_redirected = 0  # of those, solved again along the solution's own direction
         self._qp_cache: dict = {}
         self._rows_cache: dict = {}
         self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
@@ -405,12 +406,14 @@ class FbsStream:
         return out
 
     def _bounded_joint(self, c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
-                       pinned):
+                       pinned, _dirs=None):
         """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
         covers, the components of ``set_common_accel_bound(components=...)``
         (:meth:`set_common_accel_bound`): one QP over all channels, which those components couple.
         A component the reference itself exceeds is relaxed to the reference's value.  Falls back
-        to the channels' own bounds where the committed past leaves no room."""
+        to the channels' own bounds where the committed past leaves no room.  The components are
+        taken along the command's own direction, which the solution changes: where the solution
+        breaks them along its new direction, one more solve with those directions (``_dirs``)."""
         import osqp
         import scipy.sparse as sp
 
@@ -423,7 +426,8 @@ class FbsStream:
         # the firmware caps each written segment by its direction, and where the command
         # pre-actuates a z move it turns steep while the reference still runs flat (a layer change
         # without a retraction: up to 1.5 ms late on cube_prusa with other_delta's max_z_accel)
-        M, L = self.comp_fn(self.cpos[a + r[ra]], vel[ra], acc[ra])  # (R', K, C), (R', K)
+        dv, da = (vel, acc) if _dirs is None else _dirs
+        M, L = self.comp_fn(self.cpos[a + r[ra]], dv[ra], da[ra])  # (R', K, C), (R', K)
         ref_k = np.einsum("rkc,rc->rk", M, aref[ra])
         now_k = np.einsum("rkc,rc->rk", M, acc[ra])
         Lb = np.maximum(L, np.abs(ref_k) * 1.0001)
@@ -490,7 +494,16 @@ class FbsStream:
         if x is None:
             raise SolverError(f"OSQP could not keep the command within its bounds in the window starting at "
                               f"t = {self.w0 * self.basis.dt_s:.3f} s")
-        return (x * sc).reshape(C, nJ).T
+        out = (x * sc).reshape(C, nJ).T
+        if _dirs is None:
+            acc2, vel2 = B2 @ out + e2 + aref, B1 @ out + e1 + vref
+            M2, L2 = self.comp_fn(self.cpos[a + r[ra]], vel2[ra], acc2[ra])
+            Lb2 = np.maximum(L2, np.abs(np.einsum("rkc,rc->rk", M2, aref[ra])) * 1.0001)
+            if np.any(np.abs(np.einsum("rkc,rc->rk", M2, acc2[ra])) > Lb2 * 1.02):
+                self.qp_redirected += 1
+                return self._bounded_joint(out, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                                           factor, lam, pinned, _dirs=(vel2, acc2))
+        return out
 
     def _values(self, upto: int) -> np.ndarray:
         """Spline values for samples [done, upto) (all their bases committed)."""
