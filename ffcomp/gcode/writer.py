@@ -431,10 +431,13 @@ class GcodeWriter:
                                             src, K, i, j, srun, went, on_plan, k_plan)
             # only where the firmware ramps as the plan did (its limit binds there: max_z_accel, the
             # extruder's); elsewhere the output's acceleration (the header's) differs from the plan's
-            mv_ = ~hold
-            acc = np.zeros(len(i))
-            acc[mv_] = segment_limits(self.chain, Pr[i][mv_], Pr[j][mv_], de[mv_])[1]
-            fixed_v[hold | (np.abs(acc - plan_acc) > 1e-3 * np.maximum(plan_acc, 1.0))] = np.nan
+            fixed_v[hold] = np.nan
+            c_ = np.nonzero(np.isfinite(fixed_v))[0]  # (the firmware's caps only where they matter)
+            if c_.size:
+                acc = segment_limits(self.chain, Pr[i[c_]], Pr[j[c_]], de[c_])[1]
+                fixed_v[c_[np.abs(acc - plan_acc[c_]) > 1e-3 * np.maximum(plan_acc[c_], 1.0)]] = np.nan
+            if not np.isfinite(fixed_v).any():
+                fixed_v = None
         if self.chain is not None:
             pre = np.where(first_seg, run_pre[run_ids[srun]], 0.0)
             wait = np.zeros(len(dt))
