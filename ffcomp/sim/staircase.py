@@ -18,34 +18,38 @@ __all__ = ["staircase", "shaped_staircase", "simulate_steps"]
 
 
 def staircase(q_cmd_m: np.ndarray, dt_s: float, steps_per_mm: float, upsample: int = 10,
-              origin_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+              origin_m=0.0) -> tuple[np.ndarray, np.ndarray]:
     """Step positions (N_f, 3) on the fine grid ``t_f`` (N_f,) for commands ``q_cmd_m`` (N, 3).
 
-    Step 0 sits at ``origin_m`` (the lattice is fixed by homing); the run starts on the step
-    nearest to the first command.  ``N_f = (N - 1) * upsample + 1``.
+    Step 0 sits at ``origin_m`` (m, one value or one per carriage: the lattice is fixed by homing);
+    the run starts on the step nearest to the first command.  ``N_f = (N - 1) * upsample + 1``.
     """
     q = np.asarray(q_cmd_m, float)
     step = 1e-3 / float(steps_per_mm)
     n_f = (len(q) - 1) * upsample + 1
     t_f = np.arange(n_f) * (dt_s / upsample)
     out = np.empty((n_f, q.shape[1]))
+    org = np.broadcast_to(np.asarray(origin_m, float), (q.shape[1],))
     for i in range(q.shape[1]):
-        t, d, n0 = step_events(q[:, i] - origin_m, 0.0, dt_s, steps_per_mm)
+        t, d, n0 = step_events(q[:, i] - org[i], 0.0, dt_s, steps_per_mm)
         # the count after every event at or before each fine time (an event between grid points
         # acts from the next one: at most dt / upsample late)
         k = np.searchsorted(t, t_f, side="right")
         cum = np.concatenate([[0], np.cumsum(d.astype(np.int64))])
-        out[:, i] = origin_m + (n0 + cum[k]) * step
+        out[:, i] = org[i] + (n0 + cum[k]) * step
     return t_f, out
 
 
 def simulate_steps(plant, t_s: np.ndarray, q_cmd_m: np.ndarray, steps_per_mm: float, upsample: int = 10,
-                   substeps: int = 2, shaped: bool = False):
+                   substeps: int = 2, shaped: bool = False, origin_m=0.0):
     """Nozzle path (N, 3) on ``t_s`` when the plant executes the steps of ``q_cmd_m`` (N, 3): the
-    firmware's staircase, or with ``shaped`` the quantisation-aware stream's."""
+    firmware's staircase (on the lattice through ``origin_m``), or with ``shaped`` the
+    quantisation-aware stream's."""
     dt = float(t_s[1] - t_s[0])
-    fn = shaped_staircase if shaped else staircase
-    t_f, q_f = fn(q_cmd_m, dt, steps_per_mm, upsample)
+    if shaped:
+        t_f, q_f = shaped_staircase(q_cmd_m, dt, steps_per_mm, upsample)
+    else:
+        t_f, q_f = staircase(q_cmd_m, dt, steps_per_mm, upsample, origin_m)
     res = plant.simulate(t_f, q_f, hold="zoh", substeps=substeps, check=False)
     return res.xyz_m[0][::upsample]
 
