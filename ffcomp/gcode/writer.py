@@ -610,8 +610,10 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     (consecutive runs whose source moves share one ratio, :func:`flow_groups`) the source has no
     such junction, so the group's extrusion is spread by length: its total is unchanged, its
     junctions see ``diff_r = 0``.
-    Holds (segments under a micrometre), a group's first segment (see below) and groups without
-    length keep their own values.
+    Holds (segments under a micrometre), the segments at a group's start whose own ratio has not
+    yet come within ``EDGE_SHARE`` of the group's (the first spans the corner from the previous
+    ratio; keeping them, the ratio changes over several junctions instead of at once), and groups
+    without length keep their own values.
 
     Parameters
     ----------
@@ -624,16 +626,12 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     if not len(de):
         return de
     g = np.asarray(group)
-    # a group's first segment spans the corner from the previous source move, whose ratio differs:
-    # it keeps its mixed value (the ratio then changes over two junctions, each allowed twice the
-    # speed of one)
     n = len(g)
     hold = np.asarray(hold, bool)
     start = np.r_[False, g[1:] != g[:-1]]
     _, gi = np.unique(g, return_inverse=True)
-    # after a change of ratio the segments keep their reference-time extrusion until its ratio comes
-    # within EDGE_SHARE of the group's: the ratio then changes gradually over those junctions
-    # instead of at once at the second one
+    # after a change of ratio (not at the chunk's start: the group may continue the last chunk's)
+    # the segments keep their reference-time extrusion until its ratio comes within EDGE_SHARE
     ok_d = ~hold & (dist_mm > 1e-9)
     rho_g = np.bincount(gi, weights=np.where(ok_d, de, 0.0)) / np.maximum(
         np.bincount(gi, weights=np.where(ok_d, dist_mm, 0.0)), 1e-12)
