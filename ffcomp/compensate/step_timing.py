@@ -21,8 +21,9 @@ Status: measured on the commands (``benchmarks/bench_step_timing.py``: the firmw
 staircase, step times to 20 us, on the simulator), not yet in the G-code output.  The timed points
 reverse a slowly moving or standing carriage by a step from one sample to the next (a 1 kHz
 dither), and the firmware runs those reversals late: wired into the writer with every timed sample a
-point, a zig-zag ran 117 ms late.  Forbidding reversals (each point moves with its command or
-stays) lost the whole gain (1.2-2.6x the firmware's own staircase error).
+point, a zig-zag ran 117 ms late (a scratch run; the wiring was removed).  Forbidding reversals
+(each point moves with its command or stays) lost the whole gain (1.2-2.6x the firmware's own
+staircase error, scratch runs of the benchmark's cases).
 
 Pure numerics: no files, no G-code; SI units (m, s).
 """
@@ -76,8 +77,9 @@ class StepTimer:
     candidates : int
         Candidate values per carriage and sample, evenly spread over ``+-span_steps``.
     slow_m_s : float
-        Only a carriage moving slower than this (over the sample) is timed; faster carriages step
-        at more than ``slow_m_s * steps_per_mm`` Hz, where the drive hardly responds.
+        Only a carriage moving slower than this, m/s (over the sample), is timed; faster carriages
+        step at more than ``1000 * slow_m_s * steps_per_mm`` Hz (1.6 kHz by default at 80 steps/mm),
+        where the drive hardly responds.
     cell_m : float
         Pose grid of the cached linearisations, m.
     """
@@ -96,7 +98,6 @@ class StepTimer:
         self._cache: dict[tuple, _PoseModel] = {}
         self.x = None  # the response state to the staircase's error so far
         self.q_last = self.c_last = None  # the last written point and its command
-        self.moved = 0  # samples with a carriage moved off its command (statistics)
 
     def reset(self) -> None:
         """Forget the past: the next call starts a new stream at rest (after a homing, a stop)."""
@@ -175,5 +176,4 @@ class StepTimer:
                 moved[k] = True
             q_prev, c_prev = nxt, ck
         self.x, self.q_last, self.c_last = x, q_prev.copy(), c_prev.copy()
-        self.moved += int(moved.sum())
         return q, moved
