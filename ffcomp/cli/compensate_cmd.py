@@ -40,6 +40,13 @@ def compensate_cmd(
         "--plan-where-limited/--compensate-where-limited",
         help="Follow the plan where the firmware's limits would make the compensated command run late "
              "(moves bound by the extruder's limits; the z of z-hops right after a retraction).")] = True,
+    hold_margin_ms: Annotated[float, typer.Option("--hold-margin-ms", help="Rest (ms) added before every "
+                                                  "retraction that follows a move and after every unretraction "
+                                                  "that precedes one: the command settles the stop's ringing "
+                                                  "and pre-actuates the next move there (a G-code file cannot "
+                                                  "move the nozzle during an extruder-only move). 15 keeps "
+                                                  "~95 % of the gain on extruded lines at layer changes; the "
+                                                  "print takes that much longer per margin. 0: none.")] = 0.0,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
                                              "compare with the intended commands.")] = True,
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,
@@ -83,6 +90,10 @@ def compensate_cmd(
         start_mm = None if start is None else parse_start(start)
     except ValueError as e:
         raise typer.BadParameter(str(e)) from None
+    if not 0.0 <= hold_margin_ms <= 1000.0:
+        raise typer.BadParameter(f"--hold-margin-ms must be between 0 and 1000, got {hold_margin_ms}")
+    if hold_margin_ms and fmt != "gcode":
+        raise typer.BadParameter("--hold-margin-ms is for G-code output (step streams move during retractions)")
     if jobs != 1 and fmt != "gcode":
         raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")
     jobs = resolve_jobs(jobs)
@@ -100,7 +111,8 @@ def compensate_cmd(
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, self_check=self_check,
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
                              pin_repair=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
-                             unknown_policy=unknown_commands, plan_where_limited=plan_where_limited, jobs=jobs)
+                             unknown_policy=unknown_commands, plan_where_limited=plan_where_limited, jobs=jobs,
+                             hold_margin_s=hold_margin_ms * 1e-3)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
         with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),
@@ -200,6 +212,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "clamped": ("samples clamped to the workspace", "{}"),
         "pinned_samples": ("samples held on the plan (retractions, dwells, z-hops)", "{}"),
         "pin_windows": ("windows re-solved around them", "{}"),
+        "hold_margins": ("rest margins around retractions (--hold-margin-ms)", "{}"),
+        "hold_margin_time_s": ("time they add", "{:.2f} s"),
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
         "segments": ("G1 segments written", "{}"),

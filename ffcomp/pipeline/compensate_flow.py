@@ -26,7 +26,7 @@ from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits
 from ..gcode.commands import UNKNOWN_POLICIES
 from ..gcode.flavour import detect_flavour, flavour_mismatch
-from ..gcode.moves import MOVE
+from ..gcode.moves import EXTRUDE, MOVE
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
@@ -121,6 +121,12 @@ class CompensateOptions:
     #: with ``jobs`` > 1: re-plan the whole merged output in the self-check (one process, as the
     #: serial run does) instead of each piece in its worker from rest at its cut
     self_check_whole: bool = False
+    #: rest added before every retraction that follows motion and after every unretraction that
+    #: precedes motion, s (0: none).  A G-code file cannot move the nozzle during an extruder-only
+    #: move, so the command cannot settle a stop's ringing during the retraction nor pre-actuate
+    #: the next move during the unretraction; in this added rest it can (the print takes that much
+    #: longer per margin: counted in the summary).  See :func:`hold_margins`.
+    hold_margin_s: float = 0.0
 
 
 @dataclass
@@ -184,6 +190,9 @@ class CompensationSummary:
     #: time, and its worker's wall and CPU time (s)
     jobs: int = 1
     pieces: list | None = None
+    #: rest margins added around retractions (``hold_margin_s``): how many, and the time they add, s
+    hold_margins: int = 0
+    hold_margin_time_s: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -754,6 +763,9 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
         if len(qc):
             yield qc, fifo.pop(len(qc))
 
+    n_margin = int(round(opts.hold_margin_s / dt))
+    prev_mi = last_x = last_ln = None
+
     def push_post(meta):
         n_post = int(round(icfg.post_s / dt))
         qq, xx, ee, mi, ln = meta
@@ -796,15 +808,43 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                           e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_MOVE),
                           lineno=np.repeat(blk.lineno[k:k + 1], n_pre), k=np.full(n_pre, -1, np.int64))
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
-            fifo.push(q=q[sl], xyz=blk.xyz_m[sl], e=blk.e_mm[sl], move_index=blk.move_index[sl],
-                      lineno=blk.lineno[sl], k=blk.k0 + np.arange(sl.start, sl.stop, dtype=np.int64))
-            # the planner's exact rates only where the inverse uses them (by default it takes the
-            # derivatives of the samples themselves)
-            qd, qdd = (carriage_rates(geom, blk.xyz_m[sl], blk.v_m_s[sl], blk.a_m_s2[sl])
-                       if icfg.derivatives == "given" else (None, None))
-            hold = holds(blk.move_index[sl], moves) if opts.pin_holds else None
-            yield from out(inv.push(q[sl], blk.xyz_m[sl], qd, qdd, hold))
+            marks = (hold_margins(blk.move_index[sl], moves, prev_mi if pc[0] not in cuts else None)
+                     if n_margin else [])
+            a = sl.start
+            for i, where in marks + [(sl.stop - sl.start, None)]:
+                b = sl.start + i
+                if b > a:
+                    part = slice(a, b)
+                    fifo.push(q=q[part], xyz=blk.xyz_m[part], e=blk.e_mm[part], move_index=blk.move_index[part],
+                              lineno=blk.lineno[part], k=blk.k0 + np.arange(a, b, dtype=np.int64))
+                    # the planner's exact rates only where the inverse uses them (by default it takes
+                    # the derivatives of the samples themselves)
+                    qd, qdd = (carriage_rates(geom, blk.xyz_m[part], blk.v_m_s[part], blk.a_m_s2[part])
+                               if icfg.derivatives == "given" else (None, None))
+                    hold = holds(blk.move_index[part], moves) if opts.pin_holds else None
+                    yield from out(inv.push(q[part], blk.xyz_m[part], qd, qdd, hold))
+                if where is None:
+                    break
+                # the added rest: where the plan stands (the retraction's first sample, or the
+                # unretraction's last: the previous block's if the move starts a block)
+                if where == "before" or b > 0:
+                    r = b if where == "before" else b - 1
+                    qr, xr, lr = q[r], blk.xyz_m[r], blk.lineno[r]
+                else:
+                    qr, xr, lr = last_q, last_x, last_ln
+                mv = moves[int(blk.move_index[b if where == "before" else b - 1])] if (where == "before" or b > 0) \
+                    else moves[int(prev_mi)]
+                er = mv.start_mm[3] if where == "before" else mv.end_mm[3]
+                fifo.push(q=np.repeat(qr[None], n_margin, 0), xyz=np.repeat(xr[None], n_margin, 0),
+                          e=np.full(n_margin, er), move_index=np.full(n_margin, REST_MOVE),
+                          lineno=np.full(n_margin, lr), k=np.full(n_margin, -1, np.int64))
+                rest = np.repeat(qr[None], n_margin, 0)
+                yield from out(inv.push(rest, np.repeat(xr[None], n_margin, 0)))
+                summ.hold_margins += 1
+                summ.hold_margin_time_s += n_margin * dt
+                a = b
         last_q = q[-1].copy()
+        last_x, last_ln, prev_mi = blk.xyz_m[-1].copy(), blk.lineno[-1], int(blk.move_index[-1])
         summ.print_time_s = float(blk.t_s[-1])
     if inv is not None:
         push_post(last_meta)
@@ -815,6 +855,40 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     if n_xyz == 0:
         raise GcodeError(src, plan.parser.lines_read, "the file has no XYZ motion (empty, comments only, or no "
                          "moves): nothing to compensate")
+
+
+def hold_margins(move_index: np.ndarray, moves: dict, prev_mi: int | None) -> list[tuple[int, str]]:
+    """Where the stream gets a rest margin (``CompensateOptions.hold_margin_s``): before a
+    retraction (an extruder-only move that lowers E) that follows an XYZ move, and after an
+    unretraction (one that raises E) that an XYZ move follows.
+
+    Parameters
+    ----------
+    move_index : (n,) planned move of each sample
+    moves : planned moves by index
+    prev_mi : the move of the sample before the first (None: the stream starts here)
+
+    Returns
+    -------
+    list of (i, where): insert the margin before sample ``i``; ``where`` is ``"before"`` (a
+    retraction starts at sample ``i``) or ``"after"`` (an unretraction ended at sample ``i - 1``).
+    """
+    mi = np.asarray(move_index)
+    if prev_mi is not None:
+        mi = np.concatenate([[prev_mi], mi])
+    edges = np.nonzero(mi[1:] != mi[:-1])[0]
+    out = []
+    for j in edges.tolist():
+        a, b = moves.get(int(mi[j])), moves.get(int(mi[j + 1]))
+        if a is None or b is None:
+            continue
+        i = j + 1 - (prev_mi is not None)
+        if a.kind == MOVE and b.kind == EXTRUDE and b.end_mm[3] < b.start_mm[3] and int(b.index) == int(a.index) + 1:
+            out.append((i, "before"))
+        elif a.kind == EXTRUDE and b.kind == MOVE and a.end_mm[3] > a.start_mm[3] \
+                and int(b.index) == int(a.index) + 1:
+            out.append((i, "after"))
+    return out
 
 
 def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:

@@ -15,7 +15,7 @@ import numpy as np
 from ..compensate.inverse import InverseConfig, invert
 from ..gcode.sampler import concat_blocks, sample_gcode
 from ..model.lpv import LpvModel
-from ..sim.metrics import ErrorReport, evaluate
+from ..sim.metrics import ErrorReport, contour_error, evaluate, lag_aligned_error
 from ..sim.plant import DeltaPlant
 from .compensate_flow import CompensationSummary, compensate_file, inv_pre_samples
 
@@ -27,7 +27,10 @@ class OutputCheck:
     """Reports for the planned path run with no compensation, the exact commands and the G-code.
 
     ``drift_s`` is how much longer the re-planned output runs than the commands it stands for
-    (the rest added before and after included in both).
+    (the rest added before and after included in both).  ``extruding`` holds the same three runs'
+    lag-aligned and contour RMS (um) over the samples where the plan extrudes while it moves (what
+    marks the part), as ``{"none": (lag, contour), "exact": ..., "gcode": ...}``; empty when the
+    file does not extrude.
     """
 
     none: ErrorReport
@@ -35,10 +38,19 @@ class OutputCheck:
     gcode: ErrorReport
     summary: CompensationSummary
     drift_s: float
+    extruding: dict
 
     def kept(self, metric: str = "lag") -> float:
         """Share of the exact commands' RMS reduction the G-code output keeps."""
         n, e, g = (getattr(r, metric).rms_norm_um for r in (self.none, self.exact, self.gcode))
+        return (n - g) / (n - e)
+
+    def kept_extruding(self, metric: str = "lag") -> float:
+        """:meth:`kept` over the extruding samples only (NaN when the file does not extrude)."""
+        if not self.extruding:
+            return float("nan")
+        i = 0 if metric == "lag" else 1
+        n, e, g = (self.extruding[k][i] for k in ("none", "exact", "gcode"))
         return (n - g) / (n - e)
 
 
@@ -58,8 +70,13 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     # pre-actuate the first move, so the comparison starts at rest too
     cfg = InverseConfig()
     n_pre = inv_pre_samples(cfg, dt)
-    X = np.vstack([np.repeat(ref.xyz_m[:1], n_pre, 0), ref.xyz_m])
-    q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
+    Xs, qs, es = ref.xyz_m, ref.q_m, ref.e_mm
+    margin_s = 0.0 if opts is None else opts.hold_margin_s
+    if margin_s > 0:  # the rest the output adds around retractions is part of the intended motion
+        Xs, qs, es = _with_margins(src, profile, start, ref, int(round(margin_s / dt)))
+    X = np.vstack([np.repeat(Xs[:1], n_pre, 0), Xs])
+    q = np.vstack([np.repeat(qs[:1], n_pre, 0), qs])
+    e = np.concatenate([np.repeat(es[:1], n_pre), es])
     t = np.arange(len(q)) * dt
     ideal = invert(LpvModel.from_profile(profile), q, X, dt).q_cmd
     summ = compensate_file(str(src), str(out), profile, *([opts] if opts is not None else []))
@@ -68,5 +85,32 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
     sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
     none, exact, gcode = (evaluate(t, X, sim.xyz_m[r]) for r in range(3))
-    intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s
-    return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended)
+    intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
+    # extruding while moving: E rises over the sample and the nozzle moves faster than 1 mm/s
+    speed = np.linalg.norm(np.gradient(X, axis=0), axis=1) / dt
+    ext = (np.gradient(e) > 1e-6) & (speed > 1e-3)
+    extruding = {}
+    if ext.any():
+        for name, r in (("none", 0), ("exact", 1), ("gcode", 2)):
+            lag_err, _ = lag_aligned_error(t, X, sim.xyz_m[r])
+            cont = contour_error(X, sim.xyz_m[r])
+            extruding[name] = (float(np.sqrt(np.mean(np.sum(lag_err[ext] ** 2, axis=1)))) * 1e6,
+                               float(np.sqrt(np.mean(cont[ext] ** 2))) * 1e6)
+    return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding)
+
+
+def _with_margins(src, profile, start, ref, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The planned nozzle positions and carriage heights with ``n`` rest samples added where the
+    compensation adds its hold margins (:func:`~ffcomp.pipeline.compensate_flow.hold_margins`)."""
+    from ..gcode.planner import GcodePlan
+    from .compensate_flow import hold_margins
+
+    moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start)}
+    cols = (ref.xyz_m, ref.q_m, ref.e_mm)
+    parts, a = [[] for _ in cols], 0
+    for i, where in hold_margins(ref.move_index, moves, None):
+        r = i if where == "before" else i - 1
+        for p, c in zip(parts, cols):
+            p += [c[a:i], np.repeat(c[r:r + 1], n, 0)]
+        a = i
+    return tuple(np.concatenate(p + [c[a:]]) for p, c in zip(parts, cols))

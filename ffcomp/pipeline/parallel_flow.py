@@ -47,7 +47,8 @@ CUT_NOTE = ("--jobs {jobs}: the file was compensated in {pieces} pieces cut wher
             "({stops} at stops, no cost; {holds} at retractions/dwells, each adding {rest:.2f} s of rest: "
             "{extra:.2f} s in all)")
 
-_SUMMED = ("restarts", "clamped", "plan_fallback_samples", "pin_windows", "pinned_samples")
+_SUMMED = ("restarts", "clamped", "plan_fallback_samples", "pin_windows", "pinned_samples", "hold_margins",
+           "hold_margin_time_s")
 _MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s")
 
 
