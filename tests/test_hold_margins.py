@@ -69,3 +69,19 @@ def test_margins_keep_the_gain_on_extruded_lines_after_a_layer_change(tmp_path, 
     k_lag, k_con = chk.kept_extruding("lag"), chk.kept_extruding("contour")
     assert k_lag >= 0.9 and k_con >= 0.9, (k_lag, k_con)
     assert k_lag > base.kept_extruding("lag") + 0.05, (k_lag, base.kept_extruding("lag"))
+
+
+def test_cli_and_hook_take_the_margin(tmp_path, capsys):
+    from cli_util import run, run_json
+
+    src = tmp_path / "layers.gcode"
+    src.write_text("\n".join(_layers(z_hop=False)) + "\n")
+    d = run_json(capsys, src, "-o", tmp_path / "out.gcode", "--hold-margin-ms", "15", "--no-progress")
+    assert d["hold_margins"] == 2 and d["hold_margin_time_s"] == pytest.approx(0.030)
+    assert "hold_margin=15ms" in (tmp_path / "out.gcode").read_text()
+    code, _, err = run(capsys, "hook", src, "--hold-margin-ms", "15")
+    assert code == 0, err
+    assert "hold_margin=15ms" in src.read_text()
+    for bad in (["--hold-margin-ms", "-1"], ["--hold-margin-ms", "15", "--format", "steps"]):
+        code, _, err = run(capsys, tmp_path / "out.gcode", "-o", tmp_path / "x.ffsteps", *bad)
+        assert code == 2 and "--hold-margin-ms" in err, err

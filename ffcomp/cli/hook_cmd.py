@@ -29,6 +29,8 @@ def hook_cmd(
     method: Annotated[str, typer.Option(help="Inverse variant: lpv or lti-centre.")] = "lpv",
     tol_um: Annotated[float, typer.Option("--tol-um", help="Point placement tolerance, um.")] = 5.0,
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep or hold (see ffcomp compensate).")] = "keep",
+    hold_margin_ms: Annotated[float, typer.Option("--hold-margin-ms", help="Rest (ms) added around retractions "
+                                                  "(see ffcomp compensate). 0: none.")] = 0.0,
     cura_script: Annotated[bool, typer.Option("--cura-script", help="Print the path of the Cura "
                                               "post-processing script and exit.")] = False,
     jobs: JobsOpt = 1,
@@ -45,10 +47,12 @@ def hook_cmd(
     from ..compensate.inverse import InverseConfig
     from ..pipeline.compensate_flow import CompensateOptions, compensate_file
 
+    if not 0.0 <= hold_margin_ms <= 1000.0:
+        raise typer.BadParameter(f"--hold-margin-ms must be between 0 and 1000, got {hold_margin_ms}")
     prof = load_profile_opt(profile)
     final = os.environ.get("SLIC3R_PP_OUTPUT_NAME")
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, inverse=InverseConfig(method=method),
-                             jobs=resolve_jobs(jobs))
+                             jobs=resolve_jobs(jobs), hold_margin_s=hold_margin_ms * 1e-3)
     summ = compensate_file(str(gcode), str(gcode), prof, opts)
     name = f" (final file {final})" if final else ""
     reduction = ""
