@@ -67,6 +67,7 @@ def test_cura_script_compensates_the_layers(tmp_path, monkeypatch):
     assert json.loads(script.getSettingDataString())["key"] == "FfcompPostProcessing"
     exe = Path(sys.executable).with_name("ffcomp")
     script.values["ffcomp"] = str(exe) if exe.exists() else shutil.which("ffcomp")
+    script.values["hold_margin_ms"] = 15.0
     made = []
     real_mkstemp = mod.tempfile.mkstemp
 
@@ -81,5 +82,6 @@ def test_cura_script_compensates_the_layers(tmp_path, monkeypatch):
     layers = [parts[0]] + [";LAYER:" + p for p in parts[1:]]  # Cura hands over one string per layer
     text = "".join(script.execute(layers))
     assert text.startswith("; ffcomp ") and "SET_VELOCITY_LIMIT ACCEL=" in text
+    assert "hold_margin=15ms" in text  # the script's setting reaches the hook
     assert text.count(";LAYER:") == src.count(";LAYER:")  # Cura's annotations survive in place
     assert made and not any(os.path.exists(p) for p in made)  # the script cleans up after itself

@@ -26,6 +26,10 @@ class FfcompPostProcessing(Script):
                             "empty for the built-in default", "type": "str", "default_value": ""},
                 "tol_um": {"label": "Tolerance (um)", "description": "Point placement tolerance",
                            "type": "float", "default_value": 5.0},
+                "hold_margin_ms": {"label": "Rest around retractions (ms)", "description": "Rest added "
+                                   "before each retraction and after each unretraction, in which the "
+                                   "compensation settles and pre-actuates (0: none)",
+                                   "type": "float", "default_value": 0.0},
             },
         })
 
@@ -35,7 +39,8 @@ class FfcompPostProcessing(Script):
         with os.fdopen(fd, "w") as f:
             f.write("".join(data))
         cmd = [self.getSettingValueByKey("ffcomp"), "hook", path,
-               "--tol-um", str(self.getSettingValueByKey("tol_um"))]
+               "--tol-um", str(self.getSettingValueByKey("tol_um")),
+               "--hold-margin-ms", str(self.getSettingValueByKey("hold_margin_ms"))]
         profile = self.getSettingValueByKey("profile")
         if profile:
             cmd += ["--profile", profile]
