@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
+from ffcomp.gcode.margins import hold_margins
 from ffcomp.gcode.moves import DWELL, EXTRUDE, MOVE, PlannedMove
-from ffcomp.pipeline.compensate_flow import CompensateOptions, hold_margins
+from ffcomp.pipeline.compensate_flow import CompensateOptions
 from ffcomp.pipeline.output_check import check_gcode_output
 
 OTHER = "samples/profiles/other_delta.toml"
@@ -85,3 +86,25 @@ def test_cli_and_hook_take_the_margin(tmp_path, capsys):
     for bad in (["--hold-margin-ms", "-1"], ["--hold-margin-ms", "15", "--format", "steps"]):
         code, _, err = run(capsys, tmp_path / "out.gcode", "-o", tmp_path / "x.ffsteps", *bad)
         assert code == 2 and "--hold-margin-ms" in err, err
+
+
+def test_simulate_compare_puts_the_reference_on_the_margins_clock(tmp_path, profile):
+    """``ffcomp simulate SRC --compare OUT`` reads the margin from OUT's header and adds the same rest
+    to SRC's plan; aligned by one offset only, the output would drift 30 ms from the reference."""
+    from ffcomp.gcode.margins import with_margins
+    from ffcomp.pipeline.compensate_flow import compensate_file
+    from ffcomp.pipeline.header import settings_hold_margin_s
+    from ffcomp.pipeline.sim_flow import simulate_gcode
+    from ffcomp.sim.moves import load_gcode_trajectory
+
+    src, out = tmp_path / "layers.gcode", tmp_path / "out.gcode"
+    src.write_text("\n".join(_layers(z_hop=False)) + "\n")
+    compensate_file(str(src), str(out), profile, CompensateOptions(hold_margin_s=0.015, predict=False))
+    assert settings_hold_margin_s(out) == pytest.approx(0.015) and settings_hold_margin_s(src) == 0.0
+    plain = load_gcode_trajectory(profile, src)
+    longer = load_gcode_trajectory(profile, src, hold_margin_s=0.015)
+    assert len(longer.q_m) - len(plain.q_m) == 30
+    assert with_margins((np.arange(5.0),), np.array([0, 0, 1, 1, 2]), {}, 3)[0].tolist() == list(range(5))
+    rep = simulate_gcode(profile, src, compare=out)
+    planned, comp = rep.runs[0].report, rep.runs[-1].report
+    assert comp.lag.rms_norm_um < 0.4 * planned.lag.rms_norm_um, (comp.lag.rms_norm_um, planned.lag.rms_norm_um)

@@ -26,7 +26,8 @@ from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits
 from ..gcode.commands import UNKNOWN_POLICIES
 from ..gcode.flavour import detect_flavour, flavour_mismatch
-from ..gcode.moves import EXTRUDE, MOVE
+from ..gcode.margins import hold_margins
+from ..gcode.moves import MOVE
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
@@ -125,7 +126,7 @@ class CompensateOptions:
     #: precedes motion, s (0: none).  A G-code file cannot move the nozzle during an extruder-only
     #: move, so the command cannot settle a stop's ringing during the retraction nor pre-actuate
     #: the next move during the unretraction; in this added rest it can (the print takes that much
-    #: longer per margin: counted in the summary).  See :func:`hold_margins`.
+    #: longer per margin: counted in the summary).  See :mod:`ffcomp.gcode.margins`.
     hold_margin_s: float = 0.0
 
 
@@ -855,40 +856,6 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     if n_xyz == 0:
         raise GcodeError(src, plan.parser.lines_read, "the file has no XYZ motion (empty, comments only, or no "
                          "moves): nothing to compensate")
-
-
-def hold_margins(move_index: np.ndarray, moves: dict, prev_mi: int | None) -> list[tuple[int, str]]:
-    """Where the stream gets a rest margin (``CompensateOptions.hold_margin_s``): before a
-    retraction (an extruder-only move that lowers E) that follows an XYZ move, and after an
-    unretraction (one that raises E) that an XYZ move follows.
-
-    Parameters
-    ----------
-    move_index : (n,) planned move of each sample
-    moves : planned moves by index
-    prev_mi : the move of the sample before the first (None: the stream starts here)
-
-    Returns
-    -------
-    list of (i, where): insert the margin before sample ``i``; ``where`` is ``"before"`` (a
-    retraction starts at sample ``i``) or ``"after"`` (an unretraction ended at sample ``i - 1``).
-    """
-    mi = np.asarray(move_index)
-    if prev_mi is not None:
-        mi = np.concatenate([[prev_mi], mi])
-    edges = np.nonzero(mi[1:] != mi[:-1])[0]
-    out = []
-    for j in edges.tolist():
-        a, b = moves.get(int(mi[j])), moves.get(int(mi[j + 1]))
-        if a is None or b is None:
-            continue
-        i = j + 1 - (prev_mi is not None)
-        if a.kind == MOVE and b.kind == EXTRUDE and b.end_mm[3] < b.start_mm[3] and int(b.index) == int(a.index) + 1:
-            out.append((i, "before"))
-        elif a.kind == EXTRUDE and b.kind == MOVE and a.end_mm[3] > a.start_mm[3] \
-                and int(b.index) == int(a.index) + 1:
-            out.append((i, "after"))
-    return out
 
 
 def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:

@@ -144,3 +144,19 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
                 "; ffcomp: restore the profile's limits"]
     head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
     return head, foot
+
+
+def settings_hold_margin_s(path, max_lines: int = 40) -> float:
+    """The rest margin (s) an ffcomp output was written with (its ``; settings:`` header line's
+    ``hold_margin=..ms``); 0 for any other file."""
+    import re
+
+    with open(path, "rb") as f:
+        for _ in range(max_lines):
+            line = f.readline()
+            if not line:
+                break
+            if line.startswith(b"; settings:"):
+                m = re.search(rb"hold_margin=([0-9.]+)ms", line)
+                return float(m.group(1)) * 1e-3 if m else 0.0
+    return 0.0

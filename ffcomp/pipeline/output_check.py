@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..compensate.inverse import InverseConfig, invert
+from ..gcode.margins import with_margins
 from ..gcode.sampler import concat_blocks, sample_gcode
 from ..model.lpv import LpvModel
 from ..sim.metrics import ErrorReport, contour_error, evaluate, lag_aligned_error
@@ -73,7 +74,10 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     Xs, qs, es = ref.xyz_m, ref.q_m, ref.e_mm
     margin_s = 0.0 if opts is None else opts.hold_margin_s
     if margin_s > 0:  # the rest the output adds around retractions is part of the intended motion
-        Xs, qs, es = _with_margins(src, profile, start, ref, int(round(margin_s / dt)))
+        from ..gcode.planner import GcodePlan
+
+        moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start)}
+        Xs, qs, es = with_margins((Xs, qs, es), ref.move_index, moves, int(round(margin_s / dt)))
     X = np.vstack([np.repeat(Xs[:1], n_pre, 0), Xs])
     q = np.vstack([np.repeat(qs[:1], n_pre, 0), qs])
     e = np.concatenate([np.repeat(es[:1], n_pre), es])
@@ -98,19 +102,3 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
                                float(np.sqrt(np.mean(cont[ext] ** 2))) * 1e6)
     return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding)
 
-
-def _with_margins(src, profile, start, ref, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """The planned nozzle positions and carriage heights with ``n`` rest samples added where the
-    compensation adds its hold margins (:func:`~ffcomp.pipeline.compensate_flow.hold_margins`)."""
-    from ..gcode.planner import GcodePlan
-    from .compensate_flow import hold_margins
-
-    moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start)}
-    cols = (ref.xyz_m, ref.q_m, ref.e_mm)
-    parts, a = [[] for _ in cols], 0
-    for i, where in hold_margins(ref.move_index, moves, None):
-        r = i if where == "before" else i - 1
-        for p, c in zip(parts, cols):
-            p += [c[a:i], np.repeat(c[r:r + 1], n, 0)]
-        a = i
-    return tuple(np.concatenate(p + [c[a:]]) for p, c in zip(parts, cols))

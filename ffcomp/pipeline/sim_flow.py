@@ -117,7 +117,8 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
         G-code whose planned nozzle path is the reference (and the first run, ``planned``).
     compare : path, optional
         Another G-code (e.g. the compensated output) run on the printer and scored against the
-        *same* reference; the shorter record is extended at rest.
+        *same* reference; the shorter record is extended at rest.  An ffcomp output written with
+        rest margins around retractions (``--hold-margin-ms``) has them added to the reference too.
     shaper : str, optional
         ``"name@freq_hz"`` (e.g. ``"mzv@62"``): the reference shaped on X and Y as Klipper does.
     shape_z : bool
@@ -125,7 +126,12 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
     quantize : bool
         Round commands to whole steps (``limits.steps_per_mm``).
     """
-    ref = load_gcode_trajectory(profile, path)
+    from .header import settings_hold_margin_s
+
+    # an output written with rest margins around retractions runs on a longer clock: the reference
+    # (and every run derived from it) gets the same rest
+    margin_s = settings_hold_margin_s(compare) if compare else 0.0
+    ref = load_gcode_trajectory(profile, path, hold_margin_s=margin_s)
     commands: dict[str, np.ndarray] = {"planned": ref.q_m}
     if shaper:
         name, f = shapers.parse_shaper_spec(shaper)
