@@ -6,6 +6,10 @@ model predicts the residual vibration of the reference and of the command for th
 body is written to a temporary file; the header (which states the firmware settings the file
 needs, from what the body turned out to need) is prepended, the result is re-planned by the same
 planner as a self-check, and only then does it replace the output atomically.
+
+The run's options and summary are in :mod:`.options`, the compensation stream (plan, samples,
+inverse) in :mod:`.stream_flow`, the ``--jobs`` pieces in :mod:`.pieces`; this module writes the
+body and orchestrates.
 """
 
 from __future__ import annotations
@@ -14,189 +18,41 @@ import math
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from ..compensate.inverse import InverseConfig
-from ..compensate.pin_repair import RepairConfig
-from ..compensate.stream import StreamingInverse
 from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits
 from ..gcode.commands import UNKNOWN_POLICIES
 from ..gcode.flavour import detect_flavour, flavour_mismatch
-from ..gcode.margins import hold_margins
-from ..gcode.moves import MOVE
 from ..gcode.parser import parse_gcode
 from ..gcode.planner import GcodePlan
-from ..gcode.sampler import sample_blocks
 from ..gcode.signature import scan_gcode
 from ..gcode.start import resolve_start
 from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
-from ..kinematics import carriage_rates, forward, inverse
+from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings
-from .limited_moves import LimitBound, ZLimited, holds, moves_where, z_held, z_hop, z_moving
+from .limited_moves import LimitBound, ZLimited, moves_where, z_held, z_hop, z_moving
+from .options import (  # noqa: F401  (re-exported: the run's options and summary live in options.py)
+    JUMP_M,
+    PIECE_START_FEED_MM_MIN,
+    REST_MOVE,
+    Z_MODES,
+    CompensateOptions,
+    CompensationSummary,
+)
+from .pieces import Piece, _PieceState
 from .pin_stream import PinStats, pin_repaired
 from .predictor import Predictor
 from .self_check import self_check
+from .stream_flow import compensated_stream, inv_pre_samples, inverse_config
 
 __all__ = ["CompensateOptions", "CompensationSummary", "compensate_file", "JUMP_M", "header_accel", "Piece",
-           "write_body", "BodyResult"]
-
-#: the z modes (see :class:`CompensateOptions`)
-Z_MODES = ("keep", "hold", "auto")
-
-#: move index of the rest samples before and after a compensation stream (no planned move: the
-#: machine stands while the command pre-actuates the first move or settles after the last, so these
-#: samples are motion of their own, never part of an extruder-only move or dwell)
-REST_MOVE = -1
-
-#: a carriage jump larger than this between two samples is a homing (the stream restarts), m
-JUMP_M = 2e-3
-
-#: feed of the move to the plan's rest point at the start of a piece (``--jobs``), mm/min: a few
-#: micrometres at the header's acceleration take well under a millisecond
-PIECE_START_FEED_MM_MIN = 600.0
-
-
-@dataclass(frozen=True)
-class CompensateOptions:
-    """Options of :func:`compensate_file` (documented defaults).
-
-    method : inverse variant (``lpv`` or ``lti-centre`` stream)
-    tol_um : point placement tolerance of the G-code writer, micrometres
-    z_mode : ``keep`` (emit the compensated z of every point), ``hold`` (keep z at the planned z
-        wherever the plan holds it: no z motion on layer moves, for firmware with a low max_z_accel)
-        or ``auto`` (the planned z on every move that travels in z: z travel runs on the clock at
-        any max_z_accel, uncompensated).  In every mode the z of a z-hop right after an
-        extruder-only move or dwell follows the plan (see ``plan_where_limited``).
-    self_check : re-plan the output and compare with the intended commands
-    self_check_tol_um : largest allowed deviation of the re-planned carriages, micrometres (at least
-        3 x tol_um)
-    self_check_drift_ms : largest allowed drift of the re-planned output on the absolute clock, ms
-    predict : predict the residual vibration before/after with the LPV model for the summary
-    lenient : malformed G-code lines become counted warnings
-    accel_factor : the header's ACCEL is this times the profile's max_accel (at least 100,000 mm/s^2):
-        the segments carry the timing, so the firmware should change speed between them at once
-    pin_holds : (older, drive stage only) penalise the command's distance from the reference while the
-        plan holds the nozzle still; superseded by ``pin_repair``
-    corner_velocity_mm_s : the SQUARE_CORNER_VELOCITY the header sets: the compensated path already
-        slows where the plan slows, so the firmware must not slow it again at every small turn
-    start_mm : (x, y, z) where the toolhead stands before a file that moves before homing (``--start``);
-        None: the target of the file's first move (:mod:`ffcomp.gcode.start`)
-    unknown_policy : what an unknown macro or G code is: ``stop`` (the toolhead comes to rest before it,
-        with a warning), ``pass`` (copied verbatim, with a warning) or ``refuse`` (an error); see
-        :mod:`ffcomp.gcode.commands`
-    """
-
-    method: str = "lpv"
-    tol_um: float = 5.0
-    z_mode: str = "keep"
-    self_check: bool = True
-    self_check_tol_um: float = 50.0
-    predict: bool = True
-    lenient: bool = False
-    accel_factor: float = 20.0
-    pin_holds: bool = False
-    corner_velocity_mm_s: float = 100.0
-    block_len: int = 4096
-    inverse: InverseConfig = field(default_factory=InverseConfig)
-    start_mm: tuple | None = None
-    unknown_policy: str = "stop"
-    #: the self-check fails when the re-planned output runs more than this off the intended clock, ms
-    self_check_drift_ms: float = 50.0
-    #: moves the extruder's limits bind, and the z of z-hops right after a hold, follow the plan
-    #: (see :class:`LimitBound`): the firmware could not run the compensated command on time there
-    plan_where_limited: bool = True
-    #: the command equals the plan wherever a G-code file cannot move it (extruder-only moves,
-    #: dwells, the moves of ``plan_where_limited``) and is re-solved around those stretches
-    #: (:mod:`ffcomp.compensate.pin_repair`), instead of moving on and catching up after them
-    pin_repair: bool = True
-    repair: RepairConfig = field(default_factory=RepairConfig)
-    #: worker processes (``--jobs``): 1 is the serial run; N > 1 cuts the file into N pieces where the
-    #: toolhead stands still and compensates them in parallel (:mod:`ffcomp.pipeline.parallel_flow`)
-    jobs: int = 1
-    #: with ``jobs`` > 1: re-plan the whole merged output in the self-check (one process, as the
-    #: serial run does) instead of each piece in its worker from rest at its cut
-    self_check_whole: bool = False
-    #: rest added before every retraction that follows motion and after every unretraction that
-    #: precedes motion, s (0: none).  A G-code file cannot move the nozzle during an extruder-only
-    #: move, so the command cannot settle a stop's ringing during the retraction nor pre-actuate
-    #: the next move during the unretraction; in this added rest it can (the print takes that much
-    #: longer per margin: counted in the summary).  See :mod:`ffcomp.gcode.margins`.
-    hold_margin_s: float = 0.0
-
-
-@dataclass
-class CompensationSummary:
-    """The closing summary of a run (all lengths in micrometres, times in seconds)."""
-
-    source: str
-    output: str
-    method: str
-    lines_in: int = 0
-    lines_out: int = 0
-    segments: int = 0
-    print_time_s: float = 0.0
-    output_print_time_s: float | None = None
-    wall_time_s: float = 0.0
-    speed_ratio: float = 0.0
-    rms_before_um: float | None = None
-    max_before_um: float | None = None
-    rms_after_um: float | None = None
-    max_after_um: float | None = None
-    self_check_max_um: float | None = None
-    self_check_rms_um: float | None = None
-    self_check_catch_up_max_um: float | None = None
-    max_correction_um: float = 0.0
-    header_accel_mm_s2: float = 0.0
-    restarts: int = 0
-    clamped: int = 0
-    peak_command_accel_mm_s2: float = 0.0
-    warnings: int = 0
-    notes: list = field(default_factory=list)
-    firmware: str = ""
-    source_flavour: str | None = None
-    stale_temps_removed: int = 0
-    #: non-motion commands by class (ffcomp.gcode.commands): passed through verbatim, baked in (kept as
-    #: comments), stops (the toolhead rests there: known stops and unknown commands the policy made
-    #: stops), unknown commands (whatever the policy did), malformed lines skipped (--lenient)
-    commands_passed: int = 0
-    commands_baked: int = 0
-    commands_stopped: int = 0
-    commands_unknown: int = 0
-    lines_skipped: int = 0
-    #: where the plan starts (x, y, z mm) and whether the file homes before its first move
-    start_mm: list | None = None
-    homed_first: bool | None = None
-    #: the self-check on the absolute clock: largest lateness of a re-planned segment end against
-    #: the intended command timeline (ms, signed), where (s), and at the end of the file (ms)
-    self_check_drift_ms: float | None = None
-    self_check_drift_at_s: float | None = None
-    self_check_drift_end_ms: float | None = None
-    #: largest carriage deviation from the intended commands at the same absolute time, um
-    self_check_abs_max_um: float | None = None
-    #: samples written from the plan (uncompensated) because the firmware's limits bind there
-    plan_fallback_samples: int = 0
-    #: pin repair (:mod:`ffcomp.compensate.pin_repair`): windows re-solved, samples held on the plan,
-    #: largest change of the command (um)
-    pin_windows: int = 0
-    pinned_samples: int = 0
-    pin_max_change_um: float = 0.0
-    #: worker processes (``--jobs``) and, with more than one, each piece: its first source line, how
-    #: it ends (the cut's kind: ``stop``, ``hold`` or None at the end of the file), its samples' print
-    #: time, and its worker's wall and CPU time (s)
-    jobs: int = 1
-    pieces: list | None = None
-    #: rest margins added around retractions (``hold_margin_s``): how many, and the time they add, s
-    hold_margins: int = 0
-    hold_margin_time_s: float = 0.0
-
-    def to_dict(self) -> dict:
-        return asdict(self)
+           "write_body", "BodyResult", "compensated_stream", "inverse_config", "inv_pre_samples"]
 
 
 def _refuse_compensated(path: str) -> int:
@@ -338,171 +194,6 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
     summ.wall_time_s = time.perf_counter() - t_wall
     summ.speed_ratio = summ.print_time_s / max(summ.wall_time_s, 1e-9)
     return summ
-
-
-@dataclass(frozen=True)
-class Piece:
-    """One part of a file compensated on its own (``--jobs``, :mod:`ffcomp.pipeline.parallel_flow`).
-
-    The piece runs from the first *cut* at or after source line ``lo_line`` (None: the file's start)
-    to the first cut at or after ``hi_line`` (None: the file's end).  A cut is a point where the
-    planned toolhead stands still: a stop the planner reports (M600, M400, a heater wait, an unknown
-    macro: ``planner.on_stop``), or the start of an extruder-only move or dwell that follows a move
-    ending at rest (a retraction).  Every piece plans the file from its start, so the pieces find the
-    same cuts independently; a compensation stream ends at each cut (``post_s`` of rest) and the next
-    begins there (``pre_s`` of rest), as at a stop.
-    """
-
-    lo_line: int | None = None
-    hi_line: int | None = None
-
-
-#: a cut within this of a sample time counts as at it (the stream split rule at stops), s
-_CUT_EPS_S = 1e-9
-
-
-def _first_sample_at(t_s: float, fs_hz: float) -> int:
-    """Index of the first sample at or after ``t_s`` (the stream split rule of :func:`compensated_stream`)."""
-    k = max(int(math.ceil((t_s - _CUT_EPS_S) * fs_hz)), 0)
-    while k > 0 and (k - 1) / fs_hz >= t_s - _CUT_EPS_S:
-        k -= 1
-    while k / fs_hz < t_s - _CUT_EPS_S:
-        k += 1
-    return k
-
-
-class _CutFinder:
-    """The first cut (see :class:`Piece`) at or after a source line, found as the plan goes by: feed
-    it every planned move in order (``check``) and every stop the planner reports (``on_stop``)."""
-
-    def __init__(self, line: int):
-        self.line = line
-        self.stop: tuple | None = None  # (t, line) of the first stop at or after the line
-        self.stops: list[tuple] = []  # every stop reported, (t, line)
-        self.v_end = 0.0  # speed at the end of the last XYZ move, mm/s
-
-    def on_stop(self, t_s: float, lineno: int) -> None:
-        self.stops.append((t_s, lineno))
-        if self.stop is None and lineno >= self.line:
-            self.stop = (t_s, lineno, "stop")
-
-    def check(self, mv) -> tuple | None:
-        """``(t, line, kind)`` of the cut if it is at the start of ``mv`` (the first move of the next
-        piece); kind ``stop`` (a stream ends there anyway) or ``hold`` (a retraction or dwell after a
-        move ending at rest: the cut adds a stream end and start there)."""
-        if self.stop is not None and mv.t_start_s >= self.stop[0] - _CUT_EPS_S:
-            return self.stop
-        v = self.v_end
-        if mv.kind == MOVE:
-            self.v_end = mv.end_v_mm_s
-            return None
-        if mv.lineno >= self.line and v < 1e-9:
-            return (mv.t_start_s, mv.lineno, "hold")
-        return None
-
-
-class _PieceState:
-    """Where one piece begins and ends, found while its worker plans the file (see :class:`Piece`)."""
-
-    def __init__(self, piece: Piece):
-        self.piece = piece
-        self.first = piece.lo_line is None
-        self.lo: tuple | None = None  # (t, line) of the cut the piece starts at
-        self.hi: tuple | None = None  # (t, line) of the cut it ends at
-        self.k_lo = 0
-        self.k_hi = 0
-        self.empty = False
-        self.n_xyz = 0
-        self.fs = 1.0
-        self._hi = _CutFinder(piece.hi_line) if piece.hi_line is not None else None
-        self._skip_check = False  # the piece's first move was checked by the end finder already
-
-    def begin(self, plan, planned, stops: list, fs_hz: float):
-        """Skip the moves before the piece's first cut; returns the moves from it on (None: the piece
-        is empty).  ``stops`` gets the times of the stops after the cut."""
-        self.fs = float(fs_hz)
-        hi = self._hi
-
-        def stop_hook(finder):
-            def f(t_s, lineno):
-                finder.on_stop(t_s, lineno)
-                if hi is not None and finder is not hi:
-                    hi.on_stop(t_s, lineno)
-            return f
-
-        if self.first:
-            if hi is not None:
-                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
-            return planned
-        lo = _CutFinder(self.piece.lo_line)
-        plan.planner.on_stop = stop_hook(lo)
-        for mv in planned:
-            c = lo.check(mv)
-            c_hi = hi.check(mv) if hi is not None else None
-            if c is None:
-                continue
-            self.lo, self.k_lo = c, _first_sample_at(c[0], self.fs)
-            if c_hi is not None:  # no cut between the two lines: nothing here
-                self.empty = True
-                return None
-            stops.extend(t for t, _ in lo.stops if t > c[0] + _CUT_EPS_S)
-            if hi is not None:
-                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
-            else:
-                plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
-            self._skip_check = True
-            return _prepend(mv, planned)
-        self.empty = True
-        return None
-
-    def ends_at(self, mv) -> bool:
-        """Whether ``mv`` is the first move after the piece's last cut."""
-        if self._hi is None:
-            return False
-        if self._skip_check:
-            self._skip_check = False
-            return False
-        c = self._hi.check(mv)
-        if c is not None:
-            self.hi, self.k_hi = c, _first_sample_at(c[0], self.fs)
-            return True
-        return False
-
-    def window(self, lines):
-        """The piece's own source lines: from its first cut's line to before its last cut's line."""
-        for ln in lines:
-            if self.lo is None and not self.first:
-                return  # an empty piece (the lines are pulled only after its first cut is known)
-            if self.lo is not None and ln.lineno < self.lo[1]:
-                continue
-            if self.hi is not None and ln.lineno >= self.hi[1]:
-                return
-            yield ln
-
-    def before_finish(self, writer) -> None:
-        """The writer may hold the next piece's first line (read ahead before the cut was known)."""
-        nl = writer.next_line
-        if self.hi is not None and nl is not None and nl.lineno >= self.hi[1]:
-            writer.next_line = None
-            writer.lines = iter(())
-        elif self.lo is None and not self.first:
-            writer.next_line = None
-            writer.lines = iter(())
-
-
-def _prepend(first, rest):
-    yield first
-    yield from rest
-
-
-def _head(blk, n: int):
-    """The first ``n`` samples of a block (None if none)."""
-    if n <= 0:
-        return None
-    if n >= len(blk.t_s):
-        return blk
-    return replace(blk, t_s=blk.t_s[:n], xyz_m=blk.xyz_m[:n], v_m_s=blk.v_m_s[:n], a_m_s2=blk.a_m_s2[:n],
-                   e_mm=blk.e_mm[:n], q_m=blk.q_m[:n], move_index=blk.move_index[:n], lineno=blk.lineno[:n])
 
 
 def _open_existing(path: str, mode: str):
@@ -715,168 +406,6 @@ def _count_commands(summ: CompensationSummary, counts: dict) -> None:
     summ.lines_skipped = counts.get("skipped", 0)
 
 
-def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, icfg: InverseConfig, opts,
-                       summ: CompensationSummary, src: str, pstate: _PieceState | None = None):
-    """Compensated carriage commands of a planned file, in order, with each sample's reference.
-
-    Yields ``(q_cmd (n, 3), meta)``; ``meta`` holds the reference ``q``, ``xyz`` (m), ``e`` (mm),
-    ``move_index`` and ``lineno`` of the same samples.  Planned moves are recorded in ``moves``
-    (index -> PlannedMove) as they go by.  A homing (a jump of the carriages) ends one compensation
-    stream and starts the next; each stream begins with ``pre_s`` and ends with ``post_s`` of rest,
-    which the output keeps (so the command can pre-actuate the first move and settle after the last).
-    A stop command (M600, PAUSE, T1, G29, M109, an unknown macro...: the planner brings the toolhead to
-    rest there) or a sync (M400, M84) ends a stream the same way, so the command stands still at the
-    plan's rest position when the firmware runs it, and the next stream starts from rest after it.  A
-    file without XYZ motion is an error (nothing to compensate).
-
-    ``pstate`` (``--jobs``): only the samples of one :class:`Piece` are compensated: the plan runs from
-    the file's start (modal state, positions, limits and E stay right) but its moves before the
-    piece's first cut are not sampled, and the last stream ends at the next cut as at a stop.
-    """
-    geom = model.geometry
-    dt = 1.0 / profile.limits.sample_rate_hz
-    fifo = _Fifo()
-    inv = None
-    last_q = None
-    last_meta = None
-    stops: list[float] = []  # print times of stops not yet applied to the stream
-    plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
-    n_xyz = 0
-    planned = iter(plan)
-    k_start = 0
-    if pstate is not None:
-        planned = pstate.begin(plan, planned, stops, profile.limits.sample_rate_hz)
-        if planned is None:  # an empty piece: its first cut is also its last
-            return
-        k_start = pstate.k_lo
-
-    def tee():
-        nonlocal n_xyz
-        for mv in planned:
-            if pstate is not None and pstate.ends_at(mv):
-                return
-            moves[mv.index] = mv
-            if mv.kind == "move":
-                n_xyz += 1
-            yield mv
-
-    def out(qc):
-        if len(qc):
-            yield qc, fifo.pop(len(qc))
-
-    n_margin = int(round(opts.hold_margin_s / dt))
-    prev_mi = last_x = last_ln = None
-
-    def push_post(meta):
-        n_post = int(round(icfg.post_s / dt))
-        qq, xx, ee, mi, ln = meta
-        fifo.push(q=np.repeat(qq[None], n_post, 0), xyz=np.repeat(xx[None], n_post, 0),
-                  e=np.repeat(ee, n_post), move_index=np.full(n_post, REST_MOVE), lineno=np.repeat(ln, n_post),
-                  k=np.full(n_post, -1, np.int64))
-
-    for blk in sample_blocks(tee(), geom, fs_hz=profile.limits.sample_rate_hz, block_len=opts.block_len,
-                             overlap=0, path=src, k_start=k_start):
-        if pstate is not None and pstate.hi is not None and blk.k0 + len(blk.t_s) > pstate.k_hi:
-            blk = _head(blk, pstate.k_hi - blk.k0)  # the next piece starts at the cut
-            if blk is None:
-                break
-        q = blk.q_m
-        # homing (or any jump) restarts the compensation stream
-        jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
-        if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
-            jumps = np.concatenate([[0], jumps])
-        # stops: the stream ends where the plan comes to rest (the first sample at or after the stop)
-        t_end = blk.t_s[-1]
-        here = [t for t in stops if t <= t_end]
-        stops[:] = [t for t in stops if t > t_end]
-        at_stop = np.unique(np.searchsorted(blk.t_s, np.asarray(here, float) - 1e-9)) if here else np.zeros(0, int)
-        cuts = np.union1d(jumps, at_stop).astype(int)
-        for pc in np.split(np.arange(len(q)), cuts):
-            if len(pc) == 0:
-                continue
-            if inv is not None and pc[0] in cuts:
-                push_post(last_meta)
-                yield from out(inv.finish())
-                inv = None
-                if pc[0] in jumps:
-                    summ.restarts += 1
-            sl = slice(pc[0], pc[-1] + 1)
-            if inv is None:
-                inv = StreamingInverse(model, dt, icfg, keep_padding=True)
-                k = pc[0]
-                n_pre = inv_pre_samples(icfg, dt)
-                fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
-                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_MOVE),
-                          lineno=np.repeat(blk.lineno[k:k + 1], n_pre), k=np.full(n_pre, -1, np.int64))
-            last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
-            marks = (hold_margins(blk.move_index[sl], moves, prev_mi if pc[0] not in cuts else None)
-                     if n_margin else [])
-            a = sl.start
-            for i, where in marks + [(sl.stop - sl.start, None)]:
-                b = sl.start + i
-                if b > a:
-                    part = slice(a, b)
-                    fifo.push(q=q[part], xyz=blk.xyz_m[part], e=blk.e_mm[part], move_index=blk.move_index[part],
-                              lineno=blk.lineno[part], k=blk.k0 + np.arange(a, b, dtype=np.int64))
-                    # the planner's exact rates only where the inverse uses them (by default it takes
-                    # the derivatives of the samples themselves)
-                    qd, qdd = (carriage_rates(geom, blk.xyz_m[part], blk.v_m_s[part], blk.a_m_s2[part])
-                               if icfg.derivatives == "given" else (None, None))
-                    hold = holds(blk.move_index[part], moves) if opts.pin_holds else None
-                    yield from out(inv.push(q[part], blk.xyz_m[part], qd, qdd, hold))
-                if where is None:
-                    break
-                # the added rest: where the plan stands (the retraction's first sample, or the
-                # unretraction's last: the previous block's if the move starts a block)
-                if where == "before" or b > 0:
-                    r = b if where == "before" else b - 1
-                    qr, xr, lr = q[r], blk.xyz_m[r], blk.lineno[r]
-                else:
-                    qr, xr, lr = last_q, last_x, last_ln
-                mv = moves[int(blk.move_index[b if where == "before" else b - 1])] if (where == "before" or b > 0) \
-                    else moves[int(prev_mi)]
-                er = mv.start_mm[3] if where == "before" else mv.end_mm[3]
-                fifo.push(q=np.repeat(qr[None], n_margin, 0), xyz=np.repeat(xr[None], n_margin, 0),
-                          e=np.full(n_margin, er), move_index=np.full(n_margin, REST_MOVE),
-                          lineno=np.full(n_margin, lr), k=np.full(n_margin, -1, np.int64))
-                rest = np.repeat(qr[None], n_margin, 0)
-                yield from out(inv.push(rest, np.repeat(xr[None], n_margin, 0)))
-                summ.hold_margins += 1
-                summ.hold_margin_time_s += n_margin * dt
-                a = b
-        last_q = q[-1].copy()
-        last_x, last_ln, prev_mi = blk.xyz_m[-1].copy(), blk.lineno[-1], int(blk.move_index[-1])
-        summ.print_time_s = float(blk.t_s[-1])
-    if inv is not None:
-        push_post(last_meta)
-        yield from out(inv.finish())
-    if pstate is not None:
-        pstate.n_xyz = n_xyz
-        return
-    if n_xyz == 0:
-        raise GcodeError(src, plan.parser.lines_read, "the file has no XYZ motion (empty, comments only, or no "
-                         "moves): nothing to compensate")
-
-
-def inverse_config(profile, opts: CompensateOptions) -> InverseConfig:
-    """The inverse settings of a run: the options' plus the command bounds from the profile (and,
-    for Klipper, its ``max_z_accel``: the firmware caps the z acceleration of every segment there)."""
-    lim = profile.limits
-    bounds = opts.inverse.bounds or (lim.max_correction_mm * 1e-3, lim.max_carriage_velocity_mm_s * 1e-3,
-                                     lim.max_carriage_accel_mm_s2 * 1e-3)
-    zb = opts.inverse.z_accel_bound
-    if zb is None and lim.planner == "klipper":
-        zb = lim.max_z_accel_mm_s2 * 1e-3
-    return InverseConfig(**{**asdict(opts.inverse), "method": opts.method, "bounds": bounds, "z_accel_bound": zb})
-
-
-def inv_pre_samples(icfg: InverseConfig, dt: float) -> int:
-    """Rest samples the streaming inverse puts before a stream."""
-    from ..compensate.inverse import _round_to
-
-    return _round_to(int(round(icfg.pre_s / dt)), icfg.knot_samples)
-
-
 def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:
     """Clamp nozzle positions (m) in place into what Klipper's delta ``check_move`` accepts: the z
     range, the print radius, and the cone above ``limit_z`` where the radius shrinks to zero at the
@@ -900,22 +429,3 @@ def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.nda
         scale = np.where(r[far] > 0, allowed[far] / np.maximum(r[far], 1e-300), 0.0)
         xyz[far, :2] *= scale[:, None]
     return bad | far
-
-
-class _Fifo:
-    """Per-sample metadata waiting for its compensated command."""
-
-    def __init__(self):
-        self.parts: dict[str, list[np.ndarray]] = {}
-
-    def push(self, **cols):
-        for k, v in cols.items():
-            self.parts.setdefault(k, []).append(np.asarray(v))
-
-    def pop(self, n: int) -> dict[str, np.ndarray]:
-        out = {}
-        for k, lst in self.parts.items():
-            arr = np.concatenate(lst) if len(lst) > 1 else lst[0]
-            out[k], rest = arr[:n], arr[n:]
-            self.parts[k] = [rest]
-        return out
