@@ -58,6 +58,11 @@ def test_a_run_leaves_rest_at_the_plans_time():
     # elsewhere than the start, or not on the plan: from the previous point, as before
     assert rest_start(DT, 100, a, mv, k, on, lead + 0.01, 100 + a - 1) == 100 + a - 1
     assert rest_start(DT, 100, a, mv, k, ~on, lead, 100 + a - 1) == 100 + a - 1
+    # a move that leaves rest exactly on a sample (the first move after a homing: t = 0) leaves it
+    # at that sample, not a sample earlier (the writer would stretch its first segment over two)
+    mv0 = _z_move(t0=0.005)
+    a0 = int(round(mv0.t_start_s / DT))
+    assert rest_start(DT, 100, a0, mv0, k, on, lead, 100 + a0 - 1) == pytest.approx(100 + a0)
 
 
 def test_plan_speeds_are_the_trapezoids_peak_along_each_segment():

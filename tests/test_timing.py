@@ -55,6 +55,35 @@ def test_feed_solve_puts_every_segment_end_on_the_intended_clock(profile):
     assert late(F) < 1e-6
 
 
+def test_a_chain_after_written_holds_waits_out_time_ahead_standing_still(profile):
+    """Segments written as holds (``G4``: the command stands still, as in the rest before a stream)
+    leave the firmware at rest: a chain after them that starts ahead of the clock stands still for
+    that time (``wait_out``) instead of crawling through its first segment, which would leave the
+    segments after it behind a plan that leaves rest at full acceleration (the first move after
+    ``G28`` ran 0.67 ms late, at ``max_z_accel``, until its cruise)."""
+    lim = ChainLimits(profile, 2e5, 100.0)
+    P0, P1, D = _trapezoid_chain(step_ms=1)
+    n = len(D)
+    # two held samples in front (zero length), then the chain from rest, 1 ms ahead on entry
+    P0 = np.vstack([P0[:1], P0[:1], P0])
+    P1 = np.vstack([P0[:1], P0[:1], P1])
+    D = np.concatenate([[1e-3, 1e-3], D])
+    hold = np.r_[True, True, np.zeros(n, bool)]
+    zero = np.zeros(n + 2)
+    pre = zero.copy()
+    pre[2] = -1e-3
+    wait = zero.copy()
+    F = fs.solve_feeds(lim, fs.TimingState(), P0, P1, D, zero, hold, zero.astype(bool), False, pre_late=pre,
+                       wait_out=wait)
+    assert wait[2] == pytest.approx(1e-3, abs=1e-6)  # stood still, exactly
+    d = P1[2:] - P0[2:]
+    dist = np.linalg.norm(d, axis=1)
+    vmax, acc = segment_limits(lim, P0[2:], P1[2:], zero[2:])
+    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero[2:], acc, 2 * dist * acc)])
+    t = plan_chain(dist, np.minimum(F[2:], vmax) ** 2, acc, jv, 0.0, 0.0)[0]
+    assert np.abs(np.cumsum(t - D[2:])).max() < 1e-5  # and then on the clock
+
+
 def test_extrude_only_feed_round_trip():
     de, t = np.array([0.8, 0.05, 2.0]), np.array([0.05, 0.02, 0.1])
     v = fs.extrude_only_feed(de, t, 3000.0, 120.0)

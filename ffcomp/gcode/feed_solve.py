@@ -255,7 +255,9 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
             F[h] = _hold(lim, st, de[h], D[h])
         k_hold = b
         st.late_s += pre_late[a]
-        if wait_out is not None and stop_first[a] and st.late_s < -1e-6:
+        # from rest: after an extruder-only move or dwell, or after segments written as holds
+        # (``G4``: a stretch where the command stands still, e.g. the rest before a stream)
+        if wait_out is not None and (stop_first[a] or (a > 0 and hold[a - 1])) and st.late_s < -1e-6:
             # keep the time the first segment needs beyond its share, leaving rest at the
             # acceleration limit (a command that moves off harder than the firmware can)
             vmax1, acc1 = segment_limits(lim, P0[a:a + 1], P1[a:a + 1], de[a:a + 1])

@@ -74,7 +74,7 @@ def rest_start(dt: float, k0: int, a: int, mv: PlannedMove | None, k_plan: np.nd
             or np.linalg.norm(np.round(mv.start_mm[:3], 4) - lead_pt) >= 1e-3):
         return lead_k
     k_go = mv.t_start_s / dt + (k0 + a - int(k_plan[a]))
-    if not (k0 + a - 1 - 1e-9 <= k_go < k0 + a - 1e-6):
+    if not (k0 + a - 1 - 1e-9 <= k_go < k0 + a + 1e-6):
         return lead_k
     return max(lead_k, k_go)
 
