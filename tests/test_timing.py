@@ -215,3 +215,20 @@ def test_fast_z_travel_after_a_pinned_z_hop_keeps_the_clock(tmp_path):
         drift[f] = abs(s.self_check_drift_ms)
     assert drift[1.0] > 3.0  # the case
     assert drift[RepairConfig().steep_accel_factor] < 1.0, drift
+
+
+def test_z_mode_auto_keeps_the_rest_before_a_z_move_on_the_plan(tmp_path, profile):
+    """``--z-mode auto`` writes the plan's z on moves that travel in z; the rest the stream adds
+    before such a move follows the same rule (a z pre-actuated there jumped back onto the plan at the
+    move: 4.7 ms late after the homing), the rest before a layer move keeps its compensated z."""
+    from ffcomp.pipeline.compensate_flow import _rest_follows_moves
+
+    mi = np.array([-1, -1, 0, 0, 1, 1, -1, -1, 2, -1])
+    mask = np.array([0, 0, 1, 1, 0, 0, 0, 0, 1, 0], bool)
+    np.testing.assert_array_equal(_rest_follows_moves(mi, mask), [1, 1, 1, 1, 0, 0, 1, 1, 1, 1])
+    src = tmp_path / "za.gcode"
+    src.write_text("\n".join(["G28", "G90", "M83", "SET_VELOCITY_LIMIT ACCEL=10000", "G1 X-20 Y-20 Z5 F6000",
+                              "G1 X20 Y-20 E1.5 F9000", "G1 X20 Y20 E1.5", "G1 X-20 Y20 E1.5",
+                              "G1 X-20 Y-20 E1.5"]) + "\n")
+    s = compensate_file(str(src), str(tmp_path / "out.gcode"), profile, CompensateOptions(z_mode="auto", predict=False))
+    assert abs(s.self_check_drift_ms) < 0.5, s.self_check_drift_ms

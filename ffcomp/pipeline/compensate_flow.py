@@ -285,6 +285,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             fix = np.zeros(len(xyz), bool)
             if opts.z_mode in ("hold", "auto"):
                 hold = (z_held if opts.z_mode == "hold" else z_moving)(meta["move_index"], moves)
+                if opts.z_mode == "auto":
+                    hold = _rest_follows_moves(meta["move_index"], hold)
                 xyz[hold, 2] = meta["xyz"][hold, 2]
                 fix |= hold
             # moves the firmware's own limits bind (max_z_accel, the extruder's, the rim's slow
@@ -404,6 +406,23 @@ def _count_commands(summ: CompensationSummary, counts: dict) -> None:
     summ.commands_stopped = counts.get("stop", 0)
     summ.commands_unknown = counts.get("unknown", 0)
     summ.lines_skipped = counts.get("skipped", 0)
+
+
+def _rest_follows_moves(move_index: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``mask`` with each rest sample a stream adds (move index < 0: before and after a stream,
+    margins) given the value of the next planned move's samples in the chunk (its pre-actuation
+    belongs to that move), else the previous one's.  ``--z-mode auto`` keeps the plan's z on moves
+    that travel in z: a z pre-actuated in the rest before such a move would jump back onto the plan
+    at the move (5 ms late after the homing of ``stress_square.gcode``)."""
+    rest = move_index < 0
+    if not rest.any() or rest.all():
+        return mask
+    n = len(move_index)
+    idx = np.arange(n)
+    nxt = np.minimum.accumulate(np.where(rest, n, idx)[::-1])[::-1]
+    prv = np.maximum.accumulate(np.where(rest, -1, idx))
+    src = np.where(nxt < n, nxt, prv)
+    return np.where(rest, mask[src], mask)
 
 
 def _clamp_to_workspace(xyz: np.ndarray, geom, margin_m: float = 2e-7) -> np.ndarray:
