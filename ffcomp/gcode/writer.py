@@ -41,6 +41,7 @@ from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
+from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .knot_fit import fit_knots
@@ -78,7 +79,7 @@ def adaptive_breakpoints(P: np.ndarray, tol: float) -> np.ndarray:
             continue
         f = (np.arange(i + 1, j) - i) / (j - i)
         lerp = P[i] + f[:, None] * (P[j] - P[i])
-        d = np.max(np.abs(P[i + 1:j] - lerp), axis=1)
+        d = max_abs3(P[i + 1:j] - lerp)
         k = int(np.argmax(d))
         if d[k] > tol:
             mid = i + 1 + k
@@ -246,7 +247,7 @@ class GcodeWriter:
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
         on_plan = None
         if k_plan is not None and plan_mm is not None:
-            on_plan = np.max(np.abs(xyz_mm - plan_mm), axis=1) < 1e-3
+            on_plan = max_abs3(xyz_mm - plan_mm) < 1e-3
         chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense, k_plan, on_plan, t_shift)
         seg_base = []
         for r, run in enumerate(runs):
@@ -728,7 +729,7 @@ def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: f
         f = (pos - I[rep]) / (J - I)[rep]
         PI = P[I]
         lerp = PI[rep] + f[:, None] * (P[J] - PI)[rep]
-        dev = np.max(np.abs(P[pos] - lerp), axis=1)
+        dev = max_abs3(P[pos] - lerp)
         mx = np.maximum.reduceat(dev, st)
         hit = np.nonzero(dev == mx[rep])[0]
         firsthit = hit[np.r_[True, rep[hit[1:]] != rep[hit[:-1]]]]

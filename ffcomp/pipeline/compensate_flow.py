@@ -35,6 +35,7 @@ from ..gcode.start import resolve_start
 from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import carriage_rates, forward, inverse
+from ..linalg3 import max_abs3
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings
 from .limited_moves import LimitBound, ZLimited, holds, moves_where, z_held, z_hop, z_moving
@@ -769,7 +770,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 break
         q = blk.q_m
         # homing (or any jump) restarts the compensation stream
-        jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
+        jumps = np.nonzero(max_abs3(np.diff(q, axis=0)) > JUMP_M)[0] + 1
         if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
             jumps = np.concatenate([[0], jumps])
         # stops: the stream ends where the plan comes to rest (the first sample at or after the stop)

@@ -12,6 +12,7 @@ from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
 from ..gcode.writer import SEG_COLS
 from ..kinematics import inverse
+from ..linalg3 import max_abs3
 
 __all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_NOTE_MS"]
 
@@ -78,8 +79,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         qf.seek(k0 * 12)
         win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
         qi = win[K - k0].astype(float)
-        d = np.max(np.abs(q - qi), axis=1)
-        da = np.max(np.abs(inverse(geom, np.concatenate(batch_abs) * 1e-3) - qi), axis=1)
+        d = max_abs3(q - qi)
+        da = max_abs3(inverse(geom, np.concatenate(batch_abs) * 1e-3) - qi)
         worst_abs = max(worst_abs, float(np.nanmax(da)))
         if CU.any():
             worst_cu = max(worst_cu, float(np.max(d[CU])))
