@@ -103,8 +103,10 @@ def _as_poses(a) -> tuple[np.ndarray, bool]:
 
 def _horizontal_sq(geom: DeltaGeometry, xyz: np.ndarray) -> np.ndarray:
     """Squared horizontal distance from each pose to each tower, shape (N, 3)."""
-    d = xyz[:, None, :2] - geom.tower_xy_m[None, :, :]
-    return np.einsum("nij,nij->ni", d, d)
+    t = geom.tower_xy_m
+    dx = xyz[:, 0:1] - t[:, 0]  # by columns: broadcasting over the pairs of (N, 3, 2) is slower
+    dy = xyz[:, 1:2] - t[:, 1]
+    return dx * dx + dy * dy
 
 
 def arm_heights(geom: DeltaGeometry, xyz) -> np.ndarray:
@@ -179,7 +181,9 @@ def forward(geom: DeltaGeometry, q) -> np.ndarray:
 def _s_matrix(geom: DeltaGeometry, xyz: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Rows ``s_i^T`` of Eq. 7, shape (N, 3, 3)."""
     S = np.empty((xyz.shape[0], 3, 3))
-    S[:, :, :2] = xyz[:, None, :2] - geom.tower_xy_m[None]
+    t = geom.tower_xy_m
+    S[:, :, 0] = xyz[:, 0:1] - t[:, 0]
+    S[:, :, 1] = xyz[:, 1:2] - t[:, 1]
     S[:, :, 2] = xyz[:, 2:3] + geom.effector_offset_z_m - q
     return S
 
