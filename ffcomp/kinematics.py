@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
-from .linalg3 import inv3, matvec3
+from .linalg3 import inv3, matvec3, sq_norm3
 
 __all__ = [
     "DeltaGeometry",
@@ -294,7 +294,7 @@ def velocity_product(geom: DeltaGeometry, xyz, qd, *, q=None, J=None) -> np.ndar
 
 def _arm_rate_sq(xyz_dot: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """``|s_i_dot|^2 = |X_dot - e_z q_dot_i|^2`` of each arm, shape (N, 3)."""
-    return np.sum(xyz_dot * xyz_dot, axis=1)[:, None] - 2.0 * xyz_dot[:, 2:3] * qd + qd * qd
+    return sq_norm3(xyz_dot)[:, None] - 2.0 * xyz_dot[:, 2:3] * qd + qd * qd
 
 
 def reachable(geom: DeltaGeometry, xyz, *, tol_m: float = 1e-9) -> np.ndarray:

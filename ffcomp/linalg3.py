@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3", "max_abs3"]
+__all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3", "max_abs3", "sq_norm3"]
 
 
 def inv3(A: np.ndarray) -> np.ndarray:
@@ -57,3 +57,10 @@ def max_abs3(x: np.ndarray) -> np.ndarray:
     over an axis of three is many times slower than two elementwise maxima)."""
     a = np.abs(x)
     return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+
+
+def sq_norm3(x: np.ndarray) -> np.ndarray:
+    """``np.sum(x * x, axis=1)`` for an (N, 3) array, by columns (the same values, summed in the same
+    order, without a reduction over an axis of three)."""
+    s = x * x
+    return s[:, 0] + s[:, 1] + s[:, 2]
