@@ -35,6 +35,9 @@ from .kernels import (
 
 __all__ = ["FbsStream", "StreamingInverse"]
 
+#: ``FbsStream._surely_within``'s default: the window's common-mode band is computed there
+_OWN = object()
+
 
 def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Value, velocity and acceleration of one basis function as the firmware moves the command.
@@ -282,7 +285,7 @@ class FbsStream:
         A = np.maximum(lim, np.abs(az) * 1.0001)
         return np.where(act, -A - az, -np.inf), np.where(act, A - az, np.inf)
 
-    def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int) -> bool:
+    def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int, band=_OWN) -> bool:
         """A cheap sufficient test that the window's command keeps its bounds.
 
         The spline on the window's rows is ``sum c_j B_j`` over the bases still acting there (the
@@ -291,7 +294,8 @@ class FbsStream:
         B-splines of differenced coefficients (``s' = sum (c_j - c_{j-1}) N_j / h``), so
         ``|s| <= max|c|``, ``|s'| <= max|dc| / h`` and ``|s''| <= max|d2c| / h^2`` everywhere.
         When these bounds, plus the reference's own velocity and acceleration, are inside the
-        limits, no row can break them and the exact check is skipped.
+        limits, no row can break them and the exact check is skipped.  ``band``: the window's
+        :meth:`_common_band` when the caller has it already.
         """
         D, V, Acc = self.bounds
         h = self.m * self.basis.dt_s
@@ -303,7 +307,8 @@ class FbsStream:
         d2 = np.diff(d1, axis=0)
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
-        band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
+        if band is _OWN:
+            band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
         smax = np.max(np.abs(d2)) / h2
         if band is not None and smax > float(np.min(np.minimum(-band[0], band[1]))):
             return False
@@ -320,7 +325,8 @@ class FbsStream:
         sup_j = self.basis.support // m + 1
         jp = np.arange(max(self.cj0, self.w0 // m - sup_j), self.w0 // m)
         cp = self.coef[jp - self.cj0] if len(jp) else np.zeros((0, self.C))
-        if self._surely_within(cp, c, a, rows):
+        band = self._common_band(a, rows)
+        if self._surely_within(cp, c, a, rows, band=band):
             return c
         ckey = (nJ, rows, len(jp))
         if ckey not in self._rows_cache:  # the same for every full window
@@ -333,16 +339,15 @@ class FbsStream:
         r, B0, B1, B2, P0, P1, P2 = self._rows_cache[ckey]
         e0, e1, e2 = P0 @ cp, P1 @ cp, P2 @ cp  # (R, C)
         vref, aref = self.rvel[a + r], self.racc[a + r]
-        val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref
         # never demand more than the reference or the committed past allow
         Vb = np.maximum(V, np.abs(vref) * 1.0001)
         Ab = np.maximum(Acc, np.abs(aref) * 1.0001)
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
-        band = self._common_band(a, rows)
         if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
             return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
                                        factor, lam, pins.size > 0)
+        val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref
         if band is not None:
             a_lo = np.maximum(a_lo, band[0][r][:, None])
             a_hi = np.minimum(a_hi, band[1][r][:, None])
