@@ -8,22 +8,26 @@ __all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3", "max_abs3", "sq_nor
 
 
 def inv3(A: np.ndarray) -> np.ndarray:
-    """Inverse of a stack of 3x3 matrices by the adjugate (several times faster than LAPACK here)."""
-    a, b, c = A[..., 0, 0], A[..., 0, 1], A[..., 0, 2]
-    d, e, f = A[..., 1, 0], A[..., 1, 1], A[..., 1, 2]
-    g, h, i = A[..., 2, 0], A[..., 2, 1], A[..., 2, 2]
-    co = np.empty_like(A)
-    co[..., 0, 0] = e * i - f * h
-    co[..., 0, 1] = c * h - b * i
-    co[..., 0, 2] = b * f - c * e
-    co[..., 1, 0] = f * g - d * i
-    co[..., 1, 1] = a * i - c * g
-    co[..., 1, 2] = c * d - a * f
-    co[..., 2, 0] = d * h - e * g
-    co[..., 2, 1] = b * g - a * h
-    co[..., 2, 2] = a * e - b * d
-    det = a * co[..., 0, 0] + b * co[..., 1, 0] + c * co[..., 2, 0]
-    return co / det[..., None, None]
+    """Inverse of a stack of 3x3 matrices by the adjugate (several times faster than LAPACK here).
+
+    The entries are handled as nine columns of a (..., 9) view: dividing by the determinant there is
+    one broadcast over nine, not over the two short axes of (..., 3, 3).
+    """
+    A9 = A.reshape(A.shape[:-2] + (9,))
+    a, b, c, d, e, f, g, h, i = (A9[..., k] for k in range(9))
+    co = np.empty_like(A9)
+    co[..., 0] = e * i - f * h
+    co[..., 1] = c * h - b * i
+    co[..., 2] = b * f - c * e
+    co[..., 3] = f * g - d * i
+    co[..., 4] = a * i - c * g
+    co[..., 5] = c * d - a * f
+    co[..., 6] = d * h - e * g
+    co[..., 7] = b * g - a * h
+    co[..., 8] = a * e - b * d
+    det = a * co[..., 0] + b * co[..., 3] + c * co[..., 6]
+    co /= det[..., None]
+    return co.reshape(A.shape)
 
 
 def solve3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
