@@ -59,6 +59,11 @@ EXTRUDE_SPARE_S = 3e-3
 #: and where the segment starts and ends past those samples (a rest start or end between samples), ns
 SEG_COLS = 7
 
+#: a segment line, with and without extrusion; below F100 the feed gets six decimals (a slow
+#: segment's duration needs them)
+_SEG_E, _SEG_E_SLOW = "G1 X%.4f Y%.4f Z%.4f E%.5f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f E%.5f F%.6f\n"
+_SEG, _SEG_SLOW = "G1 X%.4f Y%.4f Z%.4f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f F%.6f\n"
+
 #: ModeChange names whose effect is baked into the output (the line is commented out)
 BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
                "extrude_factor", "units_mm_per_unit", "plane", "feedrate_mm_s"}
@@ -320,6 +325,7 @@ class GcodeWriter:
         # an extruder-only move or dwell lasts its planned time, which starts and ends between
         # samples: the difference from the samples it spans is lateness the next segment must absorb
         pend, run_pre = self.pend_late_s, np.zeros(R)
+        end_pts = np.round(X[[run.end - 1 for run in runs]], 4)  # each run's last sample, as written
         for r, (a, b, _, mv, kind, _) in enumerate(runs):
             if kind != MOVE and mv is not None:
                 first = mv.index not in self.done_moves
@@ -340,7 +346,7 @@ class GcodeWriter:
                 lead_e.append(e_last)
                 catch.append(after_hold and b - a + 1 > 2)
                 follows_hold[r] = after_hold
-                last_pt, after_hold = np.round(X[b - 1], 4), False  # as written
+                last_pt, after_hold = end_pts[r], False
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 run_ends.append(end)
@@ -422,7 +428,7 @@ class GcodeWriter:
         srun = run_of[i]  # motion run of each segment
         # the firmware sees the printed (rounded) coordinates: durations must come from those
         Pr = np.round(P, 4)
-        first_seg = np.r_[True, srun[1:] != srun[:-1]]
+        first_seg = np.concatenate(([True], srun[1:] != srun[:-1]))
         Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
         de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
                                            hold), run_ids[srun], ext_de, ext_runs)
@@ -482,9 +488,9 @@ class GcodeWriter:
                 else:
                     app(f"G4 P{t * 1000:{pfmt}}\n")
             elif abs(e) > 1e-9:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.{3 if f >= 100 else 6}f}\n")
+                app((_SEG_E if f >= 100 else _SEG_E_SLOW) % (x, y, z, e, f))
             else:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.{3 if f >= 100 else 6}f}\n")  # slow: a long line
+                app((_SEG if f >= 100 else _SEG_SLOW) % (x, y, z, f))
         ch.lines = lines
         cnt = np.bincount(srun, minlength=len(n_s))
         ends = np.cumsum(cnt)
@@ -629,7 +635,7 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     g = np.asarray(group)
     n = len(g)
     hold = np.asarray(hold, bool)
-    start = np.r_[False, g[1:] != g[:-1]]
+    start = np.concatenate(([False], g[1:] != g[:-1]))
     _, gi = np.unique(g, return_inverse=True)
     # after a change of ratio (not at the chunk's start: the group may continue the last chunk's)
     # the segments keep their reference-time extrusion until its ratio comes within EDGE_SHARE
@@ -667,7 +673,7 @@ def _settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.nd
         if not hold.any():
             break
         # the first hold of each group of consecutive holds (within a run) is its root
-        grp_start = hold & (first_seg | ~np.r_[False, hold[:-1]])
+        grp_start = hold & (first_seg | ~np.concatenate(([False], hold[:-1])))
         root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
         moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
         if len(offs) > 1:  # a run starts where the previous one ended
@@ -732,7 +738,7 @@ def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: f
         dev = max_abs3(P[pos] - lerp)
         mx = np.maximum.reduceat(dev, st)
         hit = np.nonzero(dev == mx[rep])[0]
-        firsthit = hit[np.r_[True, rep[hit[1:]] != rep[hit[:-1]]]]
+        firsthit = hit[np.concatenate(([True], rep[hit[1:]] != rep[hit[:-1]]))]
         split = firsthit[mx[rep[firsthit]] > tol]
         if not len(split):
             break
