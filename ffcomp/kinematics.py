@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
-from .linalg3 import inv3, matvec3, sq_norm3
+from .linalg3 import cross3, inv3, matvec3, sq_norm3
 
 __all__ = [
     "DeltaGeometry",
@@ -165,7 +165,7 @@ def forward(geom: DeltaGeometry, q) -> np.ndarray:
     ey = t - i[:, None] * ex
     j = np.linalg.norm(ey, axis=1)
     ey /= j[:, None]
-    ez = np.cross(ex, ey)
+    ez = cross3(ex, ey)
     xs = (L[0] ** 2 - L[1] ** 2 + d**2) / (2 * d)
     ys = (L[0] ** 2 - L[2] ** 2 + i**2 + j**2 - 2 * i * xs) / (2 * j)
     z2 = L[0] ** 2 - xs**2 - ys**2

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3", "max_abs3", "sq_norm3"]
+__all__ = ["inv3", "solve3", "matvec3", "rmatvec3", "gram3", "max_abs3", "sq_norm3", "cross3"]
 
 
 def inv3(A: np.ndarray) -> np.ndarray:
@@ -68,3 +68,14 @@ def sq_norm3(x: np.ndarray) -> np.ndarray:
     order, without a reduction over an axis of three)."""
     s = x * x
     return s[:, 0] + s[:, 1] + s[:, 2]
+
+
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross(a, b)`` for (N, 3) arrays, by columns (numpy's own formula, several times faster)."""
+    out = np.empty(a.shape)
+    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
+    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
+    out[:, 0] = a1 * b2 - a2 * b1
+    out[:, 1] = a2 * b0 - a0 * b2
+    out[:, 2] = a0 * b1 - a1 * b0
+    return out

@@ -19,6 +19,7 @@ from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverError
+from ..linalg3 import cross3
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
 from .differ import SplineDerivatives
@@ -621,9 +622,9 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     u = np.where((sp_ > 2e-3)[:, None], v / np.maximum(sp_, 1e-300)[:, None],
                  np.where((am > 0.05)[:, None], acc / np.maximum(am, 1e-300)[:, None], [0.0, 0.0, 1.0]))
     e = np.where((np.abs(u[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    n1 = np.cross(u, e)
+    n1 = cross3(u, e)
     n1 /= np.linalg.norm(n1, axis=1)[:, None]
-    n2 = np.cross(u, n1)
+    n2 = cross3(u, n1)
     a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
     M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
     L = np.repeat(a_seg[:, None], 3, axis=1)
