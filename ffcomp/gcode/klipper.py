@@ -284,7 +284,7 @@ class KlipperPlanner:
             err = self.kin.check_move(m)
             if err is not None:
                 raise KinematicsError(f"{self.path}:{line.lineno}: {err}: {line.text.strip()!r}")
-        if de:
+        if de and ((not dx and not dy) or axes_r[3] < 0.0):  # (the test of _extruder_check_move)
             self._extruder_check_move(m, line)
         self.commanded_pos = [ex, ey, ez, ee]
         q = self.queue
