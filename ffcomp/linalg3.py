@@ -36,13 +36,22 @@ def solve3(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def matvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``A x`` for stacks (N, 3, 3) and (N, 3), by columns (several times faster than einsum)."""
-    return A[:, :, 0] * x[:, 0:1] + A[:, :, 1] * x[:, 1:2] + A[:, :, 2] * x[:, 2:3]
+    """``A x`` for stacks (N, 3, 3) and (N, 3), row by row over long columns (several times faster
+    than einsum; the same sums as ``A[:, :, 0] * x[:, 0:1] + A[:, :, 1] * x[:, 1:2] + ...``)."""
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], x.shape), np.result_type(A, x))
+    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
+    for i in range(3):
+        out[:, i] = A[:, i, 0] * x0 + A[:, i, 1] * x1 + A[:, i, 2] * x2
+    return out
 
 
 def rmatvec3(A: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``A^T x`` for stacks (N, 3, 3) and (N, 3)."""
-    return A[:, 0, :] * x[:, 0:1] + A[:, 1, :] * x[:, 1:2] + A[:, 2, :] * x[:, 2:3]
+    """``A^T x`` for stacks (N, 3, 3) and (N, 3) (by long columns, as :func:`matvec3`)."""
+    out = np.empty(np.broadcast_shapes(A.shape[:-1], x.shape), np.result_type(A, x))
+    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
+    for j in range(3):
+        out[:, j] = A[:, 0, j] * x0 + A[:, 1, j] * x1 + A[:, 2, j] * x2
+    return out
 
 
 def gram3(A: np.ndarray) -> np.ndarray:
@@ -72,7 +81,7 @@ def sq_norm3(x: np.ndarray) -> np.ndarray:
 
 def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.cross(a, b)`` for (N, 3) arrays, by columns (numpy's own formula, several times faster)."""
-    out = np.empty(a.shape)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
     a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
     b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
     out[:, 0] = a1 * b2 - a2 * b1
