@@ -127,8 +127,8 @@ class FbsStream:
         m, W = self.m, self.W
         a = self.w0 - self.off
         need = a + rows + self.L + W
-        if need > len(self.pred):
-            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred), self.pred.shape[1]))])
+        if need > len(self.pred):  # grown a few windows at a time (rows past `need` stay zero)
+            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred) + 4 * W, self.pred.shape[1]))])
         resid = self.tgt[a:a + rows] - self.pred[a:a + rows]
         if rows == W:
             Phi, factor, lam = self.Phi, self.factor, self.lam
@@ -184,7 +184,7 @@ class FbsStream:
             k = (nJ if bounded else n_commit) * self.n_in
             c = Mop[:k] @ r + Nop[:k] @ prior
         c = c.reshape(-1, self.n_in * self.C) if self.C == 1 else c
-        if not np.all(np.isfinite(c)):
+        if not np.isfinite(c).all():
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
         if bounded:
             c = self._bounded(c, rows, nJ, a, rhs, factor, lam, pins)
