@@ -727,15 +727,18 @@ def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: f
     I, J = np.asarray(first), np.asarray(last)
     sel = J - I >= 2
     I, J = I[sel], J[sel]
+    cols = [np.ascontiguousarray(P[:, c]) for c in range(P.shape[1])]  # (1-D passes are faster)
     while len(I):
         L = J - I - 1
         st = np.cumsum(L) - L
         rep = np.repeat(np.arange(len(I)), L)
         pos = np.arange(int(L.sum())) - np.repeat(st - I - 1, L)
         f = (pos - I[rep]) / (J - I)[rep]
-        PI = P[I]
-        lerp = PI[rep] + f[:, None] * (P[J] - PI)[rep]
-        dev = max_abs3(P[pos] - lerp)
+        dev = None  # max over the columns of |P - lerp|, lerp = P_I + f (P_J - P_I)
+        for Pc in cols:
+            PI = Pc[I]
+            d = np.abs(Pc[pos] - (PI[rep] + f * (Pc[J] - PI)[rep]))
+            dev = d if dev is None else np.maximum(dev, d)
         mx = np.maximum.reduceat(dev, st)
         hit = np.nonzero(dev == mx[rep])[0]
         firsthit = hit[np.concatenate(([True], rep[hit[1:]] != rep[hit[:-1]]))]
