@@ -101,20 +101,24 @@ def _as_poses(a) -> tuple[np.ndarray, bool]:
     return a, single
 
 
-def _horizontal_sq(geom: DeltaGeometry, xyz: np.ndarray) -> np.ndarray:
-    """Squared horizontal distance from each pose to each tower, shape (N, 3)."""
-    t = geom.tower_xy_m
-    dx = xyz[:, 0:1] - t[:, 0]  # by columns: broadcasting over the pairs of (N, 3, 2) is slower
-    dy = xyz[:, 1:2] - t[:, 1]
-    return dx * dx + dy * dy
-
-
 def arm_heights(geom: DeltaGeometry, xyz) -> np.ndarray:
-    """Vertical extent ``h_i = q_i - z - H_ez`` of each forearm, shape (N, 3); NaN where unreachable."""
+    """Vertical extent ``h_i = q_i - z - H_ez`` of each forearm, shape (N, 3); NaN where unreachable.
+
+    Tower by tower on the poses' columns (1-D passes: broadcasting over the short axes of (N, 3)
+    is several times slower on long stacks)."""
     xyz, _ = _as_poses(xyz)
-    h2 = geom.arm_length_m[None, :] ** 2 - _horizontal_sq(geom, xyz)
+    L2 = geom.arm_length_m ** 2
+    t = geom.tower_xy_m
+    x, y = xyz[:, 0], xyz[:, 1]
+    h = np.empty((xyz.shape[0], 3))
     with np.errstate(invalid="ignore"):
-        return np.where(h2 > 0, np.sqrt(np.where(h2 > 0, h2, 0.0)), np.nan)
+        for i in range(3):
+            dx = x - t[i, 0]
+            dy = y - t[i, 1]
+            h2 = L2[i] - (dx * dx + dy * dy)  # arm length^2 - squared horizontal distance to tower i
+            ok = h2 > 0
+            h[:, i] = np.where(ok, np.sqrt(np.where(ok, h2, 0.0)), np.nan)
+    return h
 
 
 def inverse(geom: DeltaGeometry, xyz) -> np.ndarray:
@@ -132,8 +136,11 @@ def inverse(geom: DeltaGeometry, xyz) -> np.ndarray:
         Carriage heights, m.  NaN where a forearm cannot reach (use :func:`check_reachable`).
     """
     xyz_a, single = _as_poses(xyz)
-    q = xyz_a[:, 2:3] + geom.effector_offset_z_m + arm_heights(geom, xyz_a)
-    return q[0] if single else q
+    h = arm_heights(geom, xyz_a)
+    zo = xyz_a[:, 2] + geom.effector_offset_z_m
+    for i in range(3):
+        h[:, i] = zo + h[:, i]  # q_i = (z + H_ez) + h_i, in place
+    return h[0] if single else h
 
 
 def forward(geom: DeltaGeometry, q) -> np.ndarray:

@@ -147,8 +147,9 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         tau_own = np.clip((k * dt - fa[idx]) / span[idx], 0.0, 1.0) * dur[idx]
         tau_abs = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
         a_, v0, vc, ta, tc = R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5]
-        P = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_own)[:, None] * geo[idx, 3:]
-        Pa = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_abs)[:, None] * geo[idx, 3:]
+        G = geo[idx]
+        P = _along(G, _distance_v(a_, v0, vc, ta, tc, tau_own))
+        Pa = _along(G, _distance_v(a_, v0, vc, ta, tc, tau_abs))
         batch_pos.append(P)
         batch_abs.append(Pa)
         batch_k.append(kk)
@@ -239,6 +240,15 @@ class _SegmentTable:
     def close(self) -> None:
         if self.f is not None:
             self.f.close()
+
+
+def _along(G: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points ``start + s * unit`` (n, 3) from rows ``G`` (n, 6) of start and unit vector, column by
+    column (the same values as broadcasting ``s[:, None]``, faster on millions of samples)."""
+    P = np.empty((len(s), 3))
+    for c in range(3):
+        P[:, c] = G[:, c] + s * G[:, 3 + c]
+    return P
 
 
 def _distance_v(a, v0, vc, ta, tc, tau):
