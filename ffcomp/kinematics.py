@@ -189,9 +189,12 @@ def _s_matrix(geom: DeltaGeometry, xyz: np.ndarray, q: np.ndarray) -> np.ndarray
     """Rows ``s_i^T`` of Eq. 7, shape (N, 3, 3)."""
     S = np.empty((xyz.shape[0], 3, 3))
     t = geom.tower_xy_m
-    S[:, :, 0] = xyz[:, 0:1] - t[:, 0]
-    S[:, :, 1] = xyz[:, 1:2] - t[:, 1]
-    S[:, :, 2] = xyz[:, 2:3] + geom.effector_offset_z_m - q
+    x, y = xyz[:, 0], xyz[:, 1]
+    zo = xyz[:, 2] + geom.effector_offset_z_m
+    for i in range(3):  # tower by tower on 1-D columns (faster than broadcasting over (N, 3))
+        S[:, i, 0] = x - t[i, 0]
+        S[:, i, 1] = y - t[i, 1]
+        S[:, i, 2] = zo - q[:, i]
     return S
 
 
@@ -207,8 +210,11 @@ def jacobian(geom: DeltaGeometry, xyz, *, q=None) -> np.ndarray:
     xyz_a, single = _as_poses(xyz)
     q = inverse(geom, xyz_a) if q is None else np.atleast_2d(q)
     S = _s_matrix(geom, xyz_a, q)
-    h = q - xyz_a[:, 2:3] - geom.effector_offset_z_m  # = s_i^T p with p = (0, 0, -1)
-    J = -inv3(S) * h[:, None, :]
+    J = inv3(S)
+    for j in range(3):  # J = -S^-1 diag(h), column by column
+        h = q[:, j] - xyz_a[:, 2] - geom.effector_offset_z_m  # = s_j^T p with p = (0, 0, -1)
+        for i in range(3):
+            J[:, i, j] = -J[:, i, j] * h
     return J[0] if single else J
 
 
