@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
-from .linalg3 import inv3, matvec3
+from .linalg3 import cross3, inv3, matvec3, sq_norm3
 
 __all__ = [
     "DeltaGeometry",
@@ -101,18 +101,24 @@ def _as_poses(a) -> tuple[np.ndarray, bool]:
     return a, single
 
 
-def _horizontal_sq(geom: DeltaGeometry, xyz: np.ndarray) -> np.ndarray:
-    """Squared horizontal distance from each pose to each tower, shape (N, 3)."""
-    d = xyz[:, None, :2] - geom.tower_xy_m[None, :, :]
-    return np.einsum("nij,nij->ni", d, d)
-
-
 def arm_heights(geom: DeltaGeometry, xyz) -> np.ndarray:
-    """Vertical extent ``h_i = q_i - z - H_ez`` of each forearm, shape (N, 3); NaN where unreachable."""
+    """Vertical extent ``h_i = q_i - z - H_ez`` of each forearm, shape (N, 3); NaN where unreachable.
+
+    Tower by tower on the poses' columns (1-D passes: broadcasting over the short axes of (N, 3)
+    is several times slower on long stacks)."""
     xyz, _ = _as_poses(xyz)
-    h2 = geom.arm_length_m[None, :] ** 2 - _horizontal_sq(geom, xyz)
+    L2 = geom.arm_length_m ** 2
+    t = geom.tower_xy_m
+    x, y = xyz[:, 0], xyz[:, 1]
+    h = np.empty((xyz.shape[0], 3))
     with np.errstate(invalid="ignore"):
-        return np.where(h2 > 0, np.sqrt(np.where(h2 > 0, h2, 0.0)), np.nan)
+        for i in range(3):
+            dx = x - t[i, 0]
+            dy = y - t[i, 1]
+            h2 = L2[i] - (dx * dx + dy * dy)  # arm length^2 - squared horizontal distance to tower i
+            ok = h2 > 0
+            h[:, i] = np.where(ok, np.sqrt(np.where(ok, h2, 0.0)), np.nan)
+    return h
 
 
 def inverse(geom: DeltaGeometry, xyz) -> np.ndarray:
@@ -130,8 +136,11 @@ def inverse(geom: DeltaGeometry, xyz) -> np.ndarray:
         Carriage heights, m.  NaN where a forearm cannot reach (use :func:`check_reachable`).
     """
     xyz_a, single = _as_poses(xyz)
-    q = xyz_a[:, 2:3] + geom.effector_offset_z_m + arm_heights(geom, xyz_a)
-    return q[0] if single else q
+    h = arm_heights(geom, xyz_a)
+    zo = xyz_a[:, 2] + geom.effector_offset_z_m
+    for i in range(3):
+        h[:, i] = zo + h[:, i]  # q_i = (z + H_ez) + h_i, in place
+    return h[0] if single else h
 
 
 def forward(geom: DeltaGeometry, q) -> np.ndarray:
@@ -163,7 +172,7 @@ def forward(geom: DeltaGeometry, q) -> np.ndarray:
     ey = t - i[:, None] * ex
     j = np.linalg.norm(ey, axis=1)
     ey /= j[:, None]
-    ez = np.cross(ex, ey)
+    ez = cross3(ex, ey)
     xs = (L[0] ** 2 - L[1] ** 2 + d**2) / (2 * d)
     ys = (L[0] ** 2 - L[2] ** 2 + i**2 + j**2 - 2 * i * xs) / (2 * j)
     z2 = L[0] ** 2 - xs**2 - ys**2
@@ -179,8 +188,13 @@ def forward(geom: DeltaGeometry, q) -> np.ndarray:
 def _s_matrix(geom: DeltaGeometry, xyz: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Rows ``s_i^T`` of Eq. 7, shape (N, 3, 3)."""
     S = np.empty((xyz.shape[0], 3, 3))
-    S[:, :, :2] = xyz[:, None, :2] - geom.tower_xy_m[None]
-    S[:, :, 2] = xyz[:, 2:3] + geom.effector_offset_z_m - q
+    t = geom.tower_xy_m
+    x, y = xyz[:, 0], xyz[:, 1]
+    zo = xyz[:, 2] + geom.effector_offset_z_m
+    for i in range(3):  # tower by tower on 1-D columns (faster than broadcasting over (N, 3))
+        S[:, i, 0] = x - t[i, 0]
+        S[:, i, 1] = y - t[i, 1]
+        S[:, i, 2] = zo - q[:, i]
     return S
 
 
@@ -196,8 +210,11 @@ def jacobian(geom: DeltaGeometry, xyz, *, q=None) -> np.ndarray:
     xyz_a, single = _as_poses(xyz)
     q = inverse(geom, xyz_a) if q is None else np.atleast_2d(q)
     S = _s_matrix(geom, xyz_a, q)
-    h = q - xyz_a[:, 2:3] - geom.effector_offset_z_m  # = s_i^T p with p = (0, 0, -1)
-    J = -inv3(S) * h[:, None, :]
+    J = inv3(S)
+    for j in range(3):  # J = -S^-1 diag(h), column by column
+        h = q[:, j] - xyz_a[:, 2] - geom.effector_offset_z_m  # = s_j^T p with p = (0, 0, -1)
+        for i in range(3):
+            J[:, i, j] = -J[:, i, j] * h
     return J[0] if single else J
 
 
@@ -290,7 +307,7 @@ def velocity_product(geom: DeltaGeometry, xyz, qd, *, q=None, J=None) -> np.ndar
 
 def _arm_rate_sq(xyz_dot: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """``|s_i_dot|^2 = |X_dot - e_z q_dot_i|^2`` of each arm, shape (N, 3)."""
-    return np.sum(xyz_dot * xyz_dot, axis=1)[:, None] - 2.0 * xyz_dot[:, 2:3] * qd + qd * qd
+    return sq_norm3(xyz_dot)[:, None] - 2.0 * xyz_dot[:, 2:3] * qd + qd * qd
 
 
 def reachable(geom: DeltaGeometry, xyz, *, tol_m: float = 1e-9) -> np.ndarray:

@@ -6,6 +6,7 @@ parses options, calls one plain function that returns an object, and prints or w
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 
@@ -34,6 +35,10 @@ def _load_commands() -> None:
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point; ``ffcomp IN.gcode -o OUT.gcode`` means ``ffcomp compensate ...``."""
     _load_commands()
+    # the parser and the planners make millions of short-lived objects (records, moves) and hardly
+    # any reference cycles: a large young generation keeps the cyclic collector from scanning them
+    # over and over (3% of a compensation's time with the default 700)
+    gc.set_threshold(100_000, 50, 100)
     argv = list(sys.argv[1:] if argv is None else argv)
     names = {c.name for c in app.registered_commands} | {g.name for g in app.registered_groups}
     first = next((a for a in argv if not a.startswith("-")), None)

@@ -19,6 +19,7 @@ from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverError
+from ..linalg3 import cross3
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
 from .differ import SplineDerivatives
@@ -34,6 +35,9 @@ from .kernels import (
 )
 
 __all__ = ["FbsStream", "StreamingInverse"]
+
+#: ``FbsStream._surely_within``'s default: the window's common-mode band is computed there
+_OWN = object()
 
 
 def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,8 +127,8 @@ class FbsStream:
         m, W = self.m, self.W
         a = self.w0 - self.off
         need = a + rows + self.L + W
-        if need > len(self.pred):
-            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred), self.pred.shape[1]))])
+        if need > len(self.pred):  # grown a few windows at a time (rows past `need` stay zero)
+            self.pred = np.concatenate([self.pred, np.zeros((need - len(self.pred) + 4 * W, self.pred.shape[1]))])
         resid = self.tgt[a:a + rows] - self.pred[a:a + rows]
         if rows == W:
             Phi, factor, lam = self.Phi, self.factor, self.lam
@@ -180,7 +184,7 @@ class FbsStream:
             k = (nJ if bounded else n_commit) * self.n_in
             c = Mop[:k] @ r + Nop[:k] @ prior
         c = c.reshape(-1, self.n_in * self.C) if self.C == 1 else c
-        if not np.all(np.isfinite(c)):
+        if not np.isfinite(c).all():
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
         if bounded:
             c = self._bounded(c, rows, nJ, a, rhs, factor, lam, pins)
@@ -282,7 +286,7 @@ class FbsStream:
         A = np.maximum(lim, np.abs(az) * 1.0001)
         return np.where(act, -A - az, -np.inf), np.where(act, A - az, np.inf)
 
-    def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int) -> bool:
+    def _surely_within(self, cp: np.ndarray, c: np.ndarray, a: int, rows: int, band=_OWN) -> bool:
         """A cheap sufficient test that the window's command keeps its bounds.
 
         The spline on the window's rows is ``sum c_j B_j`` over the bases still acting there (the
@@ -291,7 +295,8 @@ class FbsStream:
         B-splines of differenced coefficients (``s' = sum (c_j - c_{j-1}) N_j / h``), so
         ``|s| <= max|c|``, ``|s'| <= max|dc| / h`` and ``|s''| <= max|d2c| / h^2`` everywhere.
         When these bounds, plus the reference's own velocity and acceleration, are inside the
-        limits, no row can break them and the exact check is skipped.
+        limits, no row can break them and the exact check is skipped.  ``band``: the window's
+        :meth:`_common_band` when the caller has it already.
         """
         D, V, Acc = self.bounds
         h = self.m * self.basis.dt_s
@@ -303,7 +308,8 @@ class FbsStream:
         d2 = np.diff(d1, axis=0)
         vmax = float(np.max(np.abs(self.rvel[a:a + rows]))) if rows else 0.0
         amax = float(np.max(np.abs(self.racc[a:a + rows]))) if rows else 0.0
-        band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
+        if band is _OWN:
+            band = FbsStream._common_band(self, a, rows) if getattr(self, "cbound", None) is not None else None
         smax = np.max(np.abs(d2)) / h2
         if band is not None and smax > float(np.min(np.minimum(-band[0], band[1]))):
             return False
@@ -320,7 +326,8 @@ class FbsStream:
         sup_j = self.basis.support // m + 1
         jp = np.arange(max(self.cj0, self.w0 // m - sup_j), self.w0 // m)
         cp = self.coef[jp - self.cj0] if len(jp) else np.zeros((0, self.C))
-        if self._surely_within(cp, c, a, rows):
+        band = self._common_band(a, rows)
+        if self._surely_within(cp, c, a, rows, band=band):
             return c
         ckey = (nJ, rows, len(jp))
         if ckey not in self._rows_cache:  # the same for every full window
@@ -333,16 +340,15 @@ class FbsStream:
         r, B0, B1, B2, P0, P1, P2 = self._rows_cache[ckey]
         e0, e1, e2 = P0 @ cp, P1 @ cp, P2 @ cp  # (R, C)
         vref, aref = self.rvel[a + r], self.racc[a + r]
-        val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref
         # never demand more than the reference or the committed past allow
         Vb = np.maximum(V, np.abs(vref) * 1.0001)
         Ab = np.maximum(Acc, np.abs(aref) * 1.0001)
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
-        band = self._common_band(a, rows)
         if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
             return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
                                        factor, lam, pins.size > 0)
+        val, vel, acc = B0 @ c + e0, B1 @ c + e1 + vref, B2 @ c + e2 + aref
         if band is not None:
             a_lo = np.maximum(a_lo, band[0][r][:, None])
             a_hi = np.minimum(a_hi, band[1][r][:, None])
@@ -616,9 +622,9 @@ def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, 
     u = np.where((sp_ > 2e-3)[:, None], v / np.maximum(sp_, 1e-300)[:, None],
                  np.where((am > 0.05)[:, None], acc / np.maximum(am, 1e-300)[:, None], [0.0, 0.0, 1.0]))
     e = np.where((np.abs(u[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    n1 = np.cross(u, e)
+    n1 = cross3(u, e)
     n1 /= np.linalg.norm(n1, axis=1)[:, None]
-    n2 = np.cross(u, n1)
+    n2 = cross3(u, n1)
     a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
     M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
     L = np.repeat(a_seg[:, None], 3, axis=1)

@@ -147,7 +147,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         late_end = late0 + np.cumsum(t_best - D)
         ls = np.concatenate([[late0], late_end[:-1]])
         ahead = free & (ls < -1e-5)
-        first = ahead & ~np.r_[False, ahead[:-1]]
+        first = ahead & ~np.concatenate(([False], ahead[:-1]))
         if not first.any():
             break
         # two ways: the first segment waits it all, or the first AHEAD_SPREAD segments share it
@@ -177,7 +177,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         late_end = late0 + np.cumsum(t_best - D)
         ls = np.concatenate([[late0], late_end[:-1]])
         behind = free & (ls > 1e-5)
-        first = np.nonzero(behind & ~np.r_[False, behind[:-1]])[0]
+        first = np.nonzero(behind & ~np.concatenate(([False], behind[:-1])))[0]
         if not first.size:
             break
         k = int(first[np.argmax(ls[first])])
@@ -236,7 +236,7 @@ def solve_feeds(lim: ChainLimits, st: TimingState, P0: np.ndarray, P1: np.ndarra
     # chains: runs of moving segments; a hold or a stop starts a new one
     brk = hold | stop_first
     idx = np.arange(n)
-    starts = idx[moving & (np.r_[True, brk[1:] | hold[:-1]] | stop_first)]
+    starts = idx[moving & (np.concatenate(([True], brk[1:] | hold[:-1])) | stop_first)]
     # a chain ends before the next hold or stop
     ends_at = np.nonzero(brk)[0]
     e_of = ends_at[np.minimum(np.searchsorted(ends_at, starts, side="right"), len(ends_at) - 1)] \

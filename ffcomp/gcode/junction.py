@@ -54,8 +54,11 @@ def klipper_corner_v2(junction_cos_theta: float, jd: float, accel: float, delta_
     prev_jd, prev_accel, prev_delta_v2 : float
         The same for the previous move.
     """
-    sin_theta_d2 = math.sqrt(max(0.5 * (1.0 - junction_cos_theta), 0.0))
-    cos_theta_d2 = math.sqrt(max(0.5 * (1.0 + junction_cos_theta), 0.0))
+    s2 = 0.5 * (1.0 - junction_cos_theta)
+    c2 = 0.5 * (1.0 + junction_cos_theta)
+    # max(x, 0.0) written out (a planner hot path): NaN and -0.0 pass as max() lets them
+    sin_theta_d2 = math.sqrt(0.0 if s2 < 0.0 else s2)
+    cos_theta_d2 = math.sqrt(0.0 if c2 < 0.0 else c2)
     one_minus_sin_theta_d2 = 1.0 - sin_theta_d2
     if one_minus_sin_theta_d2 > 0.0 and cos_theta_d2 > 0.0:
         r_jd = sin_theta_d2 / one_minus_sin_theta_d2

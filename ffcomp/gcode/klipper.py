@@ -57,9 +57,12 @@ class _Move:
         if speed2 < self.max_cruise_v2:
             self.max_cruise_v2 = speed2
             self.min_move_t = self.move_d / speed
-        self.accel = min(self.accel, accel)
-        self.delta_v2 = 2.0 * self.move_d * self.accel
-        self.smooth_delta_v2 = min(self.smooth_delta_v2, self.delta_v2)
+        # min() written out (the same value: min keeps the first of equals): a planner hot path
+        if accel < self.accel:
+            self.accel = accel
+        self.delta_v2 = delta_v2 = 2.0 * self.move_d * self.accel
+        if delta_v2 < self.smooth_delta_v2:
+            self.smooth_delta_v2 = delta_v2
 
     def set_junction(self, start_v2: float, cruise_v2: float, end_v2: float) -> None:
         half_inv_accel = 0.5 / self.accel
@@ -135,14 +138,16 @@ class KlipperDelta:
             z_ratio = m.move_d / abs(m.axes_d[2])
             m.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
             limit_xy2 = -1.0
-        extreme_xy2 = max(end_xy2, m.start[0] ** 2 + m.start[1] ** 2)
+        start_xy2 = m.start[0] ** 2 + m.start[1] ** 2
+        extreme_xy2 = start_xy2 if start_xy2 > end_xy2 else end_xy2  # max(), written out
         if extreme_xy2 > self.slow_xy2:
             r = 0.5
             if extreme_xy2 > self.very_slow_xy2:
                 r = 0.25
             m.limit_speed(self.max_velocity * r, self.max_accel * r)
             limit_xy2 = -1.0
-        self.limit_xy2 = min(limit_xy2, self.slow_xy2)
+        slow_xy2 = self.slow_xy2
+        self.limit_xy2 = slow_xy2 if slow_xy2 < limit_xy2 else limit_xy2  # min(), written out
         return None
 
 
@@ -279,7 +284,7 @@ class KlipperPlanner:
             err = self.kin.check_move(m)
             if err is not None:
                 raise KinematicsError(f"{self.path}:{line.lineno}: {err}: {line.text.strip()!r}")
-        if de:
+        if de and ((not dx and not dy) or axes_r[3] < 0.0):  # (the test of _extruder_check_move)
             self._extruder_check_move(m, line)
         self.commanded_pos = [ex, ey, ez, ee]
         q = self.queue
@@ -301,7 +306,8 @@ class KlipperPlanner:
             if corner < max_start_v2:
                 max_start_v2 = corner
             m.max_start_v2 = max_start_v2
-            m.max_smoothed_v2 = min(max_start_v2, prev.max_smoothed_v2 + prev.smooth_delta_v2)
+            reach_v2 = prev.max_smoothed_v2 + prev.smooth_delta_v2
+            m.max_smoothed_v2 = reach_v2 if reach_v2 < max_start_v2 else max_start_v2
         self.junction_flush -= m.min_move_t
         if self.junction_flush <= 0.0:
             self._process(lazy=True)

@@ -805,11 +805,12 @@ def _open_lines(path: Path) -> Iterator[str]:
     :data:`MAX_LINE_CHARS` comes in pieces (the parser rejects the first), so memory stays bounded."""
     limit = MAX_LINE_CHARS + 1
     with open(path, encoding="utf-8", errors="surrogateescape", newline="") as f:
-        for line in iter(lambda: f.readline(limit), ""):
+        readline = f.readline
+        while line := readline(limit):
             yield line
             if len(line) == limit and not line.endswith(("\n", "\r")):  # drop the rest of a long line
                 while True:
-                    rest = f.readline(limit)
+                    rest = readline(limit)
                     if not rest or rest.endswith(("\n", "\r")):
                         break
 

@@ -122,11 +122,15 @@ def _run(p, records: Iterable[GcodeLine]) -> Iterator[PlannedMove]:
     ``SET_VELOCITY_LIMIT ACCEL=0.001``) is a :class:`GcodeError` naming its line.
     """
     ops = _OPS
+    move = p.move
     for line in records:
         op = line.op
         if op is None:
             continue
-        ops[type(op)](p, op, line)
+        if type(op) is LinearMove:  # most lines: _linear without the lookup and the call
+            move(op.end, op.speed_mm_s, line)
+        else:
+            ops[type(op)](p, op, line)
         if p.out:
             yield from _checked(p, p.take())
     p.finish()

@@ -124,10 +124,14 @@ def _evaluate(rows: list[tuple], ids: list[tuple], t: np.ndarray):
     s[in_dec] = accel_d[in_dec] + vc[in_dec] * tc[in_dec] + vc[in_dec] * tt - 0.5 * a[in_dec] * tt * tt
     v[in_dec] = vc[in_dec] - a[in_dec] * tt
     acc[in_dec] = -a[in_dec]
-    unit = Pj[:, _C_U:_C_U + 4]
-    pos = Pj[:, _C_P:_C_P + 4] + unit * s[:, None]
-    vel = unit[:, :3] * v[:, None]
-    accel = unit[:, :3] * acc[:, None]
+    n = len(tau)
+    pos, vel, accel = np.empty((n, 4)), np.empty((n, 3)), np.empty((n, 3))
+    for c in range(4):  # along the unit vector, column by column (faster than broadcasting s[:, None])
+        u = Pj[:, _C_U + c]
+        pos[:, c] = Pj[:, _C_P + c] + u * s
+        if c < 3:
+            vel[:, c] = u * v
+            accel[:, c] = u * acc
     idarr = np.asarray(ids, dtype=np.int64).reshape(-1, 2)[j]
     return pos, vel, accel, idarr[:, 0], idarr[:, 1]
 

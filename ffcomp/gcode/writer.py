@@ -41,6 +41,7 @@ from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
+from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .knot_fit import fit_knots
@@ -57,6 +58,11 @@ EXTRUDE_SPARE_S = 3e-3
 #: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream,
 #: and where the segment starts and ends past those samples (a rest start or end between samples), ns
 SEG_COLS = 7
+
+#: a segment line, with and without extrusion; below F100 the feed gets six decimals (a slow
+#: segment's duration needs them)
+_SEG_E, _SEG_E_SLOW = "G1 X%.4f Y%.4f Z%.4f E%.5f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f E%.5f F%.6f\n"
+_SEG, _SEG_SLOW = "G1 X%.4f Y%.4f Z%.4f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f F%.6f\n"
 
 #: ModeChange names whose effect is baked into the output (the line is commented out)
 BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
@@ -78,7 +84,7 @@ def adaptive_breakpoints(P: np.ndarray, tol: float) -> np.ndarray:
             continue
         f = (np.arange(i + 1, j) - i) / (j - i)
         lerp = P[i] + f[:, None] * (P[j] - P[i])
-        d = np.max(np.abs(P[i + 1:j] - lerp), axis=1)
+        d = max_abs3(P[i + 1:j] - lerp)
         k = int(np.argmax(d))
         if d[k] > tol:
             mid = i + 1 + k
@@ -246,7 +252,7 @@ class GcodeWriter:
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
         on_plan = None
         if k_plan is not None and plan_mm is not None:
-            on_plan = np.max(np.abs(xyz_mm - plan_mm), axis=1) < 1e-3
+            on_plan = max_abs3(xyz_mm - plan_mm) < 1e-3
         chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense, k_plan, on_plan, t_shift)
         seg_base = []
         for r, run in enumerate(runs):
@@ -319,6 +325,7 @@ class GcodeWriter:
         # an extruder-only move or dwell lasts its planned time, which starts and ends between
         # samples: the difference from the samples it spans is lateness the next segment must absorb
         pend, run_pre = self.pend_late_s, np.zeros(R)
+        end_pts = np.round(X[[run.end - 1 for run in runs]], 4)  # each run's last sample, as written
         for r, (a, b, _, mv, kind, _) in enumerate(runs):
             if kind != MOVE and mv is not None:
                 first = mv.index not in self.done_moves
@@ -339,7 +346,7 @@ class GcodeWriter:
                 lead_e.append(e_last)
                 catch.append(after_hold and b - a + 1 > 2)
                 follows_hold[r] = after_hold
-                last_pt, after_hold = np.round(X[b - 1], 4), False  # as written
+                last_pt, after_hold = end_pts[r], False
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 run_ends.append(end)
@@ -421,7 +428,7 @@ class GcodeWriter:
         srun = run_of[i]  # motion run of each segment
         # the firmware sees the printed (rounded) coordinates: durations must come from those
         Pr = np.round(P, 4)
-        first_seg = np.r_[True, srun[1:] != srun[:-1]]
+        first_seg = np.concatenate(([True], srun[1:] != srun[:-1]))
         Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
         de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
                                            hold), run_ids[srun], ext_de, ext_runs)
@@ -481,9 +488,9 @@ class GcodeWriter:
                 else:
                     app(f"G4 P{t * 1000:{pfmt}}\n")
             elif abs(e) > 1e-9:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} E{e:.5f} F{f:.{3 if f >= 100 else 6}f}\n")
+                app((_SEG_E if f >= 100 else _SEG_E_SLOW) % (x, y, z, e, f))
             else:
-                app(f"G1 X{x:.4f} Y{y:.4f} Z{z:.4f} F{f:.{3 if f >= 100 else 6}f}\n")  # slow: a long line
+                app((_SEG if f >= 100 else _SEG_SLOW) % (x, y, z, f))
         ch.lines = lines
         cnt = np.bincount(srun, minlength=len(n_s))
         ends = np.cumsum(cnt)
@@ -628,7 +635,7 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     g = np.asarray(group)
     n = len(g)
     hold = np.asarray(hold, bool)
-    start = np.r_[False, g[1:] != g[:-1]]
+    start = np.concatenate(([False], g[1:] != g[:-1]))
     _, gi = np.unique(g, return_inverse=True)
     # after a change of ratio (not at the chunk's start: the group may continue the last chunk's)
     # the segments keep their reference-time extrusion until its ratio comes within EDGE_SHARE
@@ -666,7 +673,7 @@ def _settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.nd
         if not hold.any():
             break
         # the first hold of each group of consecutive holds (within a run) is its root
-        grp_start = hold & (first_seg | ~np.r_[False, hold[:-1]])
+        grp_start = hold & (first_seg | ~np.concatenate(([False], hold[:-1])))
         root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
         moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
         if len(offs) > 1:  # a run starts where the previous one ended
@@ -720,18 +727,21 @@ def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: f
     I, J = np.asarray(first), np.asarray(last)
     sel = J - I >= 2
     I, J = I[sel], J[sel]
+    cols = [np.ascontiguousarray(P[:, c]) for c in range(P.shape[1])]  # (1-D passes are faster)
     while len(I):
         L = J - I - 1
         st = np.cumsum(L) - L
         rep = np.repeat(np.arange(len(I)), L)
         pos = np.arange(int(L.sum())) - np.repeat(st - I - 1, L)
         f = (pos - I[rep]) / (J - I)[rep]
-        PI = P[I]
-        lerp = PI[rep] + f[:, None] * (P[J] - PI)[rep]
-        dev = np.max(np.abs(P[pos] - lerp), axis=1)
+        dev = None  # max over the columns of |P - lerp|, lerp = P_I + f (P_J - P_I)
+        for Pc in cols:
+            PI = Pc[I]
+            d = np.abs(Pc[pos] - (PI[rep] + f * (Pc[J] - PI)[rep]))
+            dev = d if dev is None else np.maximum(dev, d)
         mx = np.maximum.reduceat(dev, st)
         hit = np.nonzero(dev == mx[rep])[0]
-        firsthit = hit[np.r_[True, rep[hit[1:]] != rep[hit[:-1]]]]
+        firsthit = hit[np.concatenate(([True], rep[hit[1:]] != rep[hit[:-1]]))]
         split = firsthit[mx[rep[firsthit]] > tol]
         if not len(split):
             break

@@ -48,7 +48,7 @@ class LimitBound:
         b = self.cache.get(mv.index)
         if b is None:
             b = False
-            if mv.kind == "move" and (mv.accel_t_s > 0 or mv.decel_t_s > 0):
+            if mv.kind == "move" and (mv.accel_t_s > 0 or mv.decel_t_s > 0) and _extruder_capped(mv):
                 s0, s1 = np.array([mv.start_mm[:3]]), np.array([mv.end_mm[:3]])
                 de = np.array([mv.end_mm[3] - mv.start_mm[3]])
                 acc_cap = segment_limits(self.extruder_only, s0, s1, de)[1][0]
@@ -192,10 +192,20 @@ class _NoAccel:
         self.slow_xy2 = self.very_slow_xy2 = float("inf")
 
 
+def _extruder_capped(mv) -> bool:
+    """Whether the extruder's limits apply to ``mv`` at all (Klipper's extruder ``check_move``: it
+    retracts, or extrudes without XY travel); elsewhere :class:`_NoAccel` leaves its acceleration
+    unbounded, so a move failing this test is never bound (and needs no arrays)."""
+    s, e = mv.start_mm, mv.end_mm
+    de = e[3] - s[3]
+    return bool(de != 0 and (de < 0 or (e[0] - s[0] == 0 and e[1] - s[1] == 0)))
+
+
 def z_hop(mv) -> bool:
     """A move that travels more in z than in XY (a z-hop, a layer change at one XY point)."""
-    d = np.abs(np.asarray(mv.end_mm[:3]) - np.asarray(mv.start_mm[:3]))
-    return bool(d[2] > 1e-9 and d[2] >= np.hypot(d[0], d[1]))
+    s, e = mv.start_mm, mv.end_mm
+    dz = abs(e[2] - s[2])
+    return bool(dz > 1e-9 and dz >= np.hypot(abs(e[0] - s[0]), abs(e[1] - s[1])))
 
 
 def z_moving(move_index: np.ndarray, moves: dict) -> np.ndarray:

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
 from ..kinematics import jacobian
+from ..linalg3 import max_abs3
 
 __all__ = ["PinStats", "pin_repaired"]
 
@@ -66,7 +67,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         n = len(buf_q)
         # stream boundaries (homing jumps): windows never cross them
         qref = buf_meta["q"]
-        jumps = np.nonzero(np.max(np.abs(np.diff(qref, axis=0)), axis=1) > jump_m)[0] + 1 if n > 1 else []
+        jumps = np.nonzero(max_abs3(np.diff(qref, axis=0)) > jump_m)[0] + 1 if n > 1 else []
         bounds = np.r_[0, jumps, n].astype(int)
         # the plan comes to rest between two samples before a pinned run where it stands still (a
         # hold): the last sample before the run is pinned too, to the rest position, so the firmware
@@ -77,7 +78,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         st = st[(st + 2 < n) | final]
         if st.size:
             nxt = np.minimum(st + 2, n - 1)
-            still = np.max(np.abs(qref[nxt] - qref[st + 1]), axis=1) < 1e-9
+            still = max_abs3(qref[nxt] - qref[st + 1]) < 1e-9
             st = st[still & ~buf_rest[st]]
             buf_rest[st] = buf_pin[st] = True
             buf_qt[st] = qref[st + 1]
@@ -89,7 +90,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         en = en[(en > 0) & ~buf_next[np.minimum(en + 1, n - 1)]]
         mi = buf_meta.get("move_index")
         if en.size and mi is not None:
-            turn = (mi[en + 1] != mi[en]) & (np.max(np.abs(qref[en] - qref[en - 1]), axis=1) > 1e-9)
+            turn = (mi[en + 1] != mi[en]) & (max_abs3(qref[en] - qref[en - 1]) > 1e-9)
             en = en[turn]
             buf_next[en + 1] = buf_pin[en + 1] = True
         qtgt = np.where(buf_rest[:, None], buf_qt, qref)

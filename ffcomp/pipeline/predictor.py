@@ -9,7 +9,7 @@ import numpy as np
 from ..compensate.kernels import DriveFilter
 from ..compensate.ltv import simulate_piecewise
 from ..kinematics import jacobian
-from ..linalg3 import matvec3
+from ..linalg3 import matvec3, sq_norm3
 from ..model.lpv import LpvModel, mech_arrays
 
 __all__ = ["Predictor"]
@@ -86,7 +86,7 @@ class Predictor:
         J = jacobian(self.model.geometry, xyz_ref, q=q_ref)
         for r in range(2):
             e = matvec3(J, xs[prefix:, :3, r] + self.q0 - q_ref)
-            en = np.sqrt(np.sum(e * e, 1))
+            en = np.sqrt(sq_norm3(e))
             self.sq[r] += float(np.sum(en * en))
             self.mx[r] = max(self.mx[r], float(en.max()))
         self.n += len(q_cmd)

@@ -12,6 +12,7 @@ from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
 from ..gcode.writer import SEG_COLS
 from ..kinematics import inverse
+from ..linalg3 import max_abs3
 
 __all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_NOTE_MS"]
 
@@ -78,8 +79,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         qf.seek(k0 * 12)
         win = np.frombuffer(qf.read((k1 - k0) * 12), dtype=np.float32).reshape(-1, 3)
         qi = win[K - k0].astype(float)
-        d = np.max(np.abs(q - qi), axis=1)
-        da = np.max(np.abs(inverse(geom, np.concatenate(batch_abs) * 1e-3) - qi), axis=1)
+        d = max_abs3(q - qi)
+        da = max_abs3(inverse(geom, np.concatenate(batch_abs) * 1e-3) - qi)
         worst_abs = max(worst_abs, float(np.nanmax(da)))
         if CU.any():
             worst_cu = max(worst_cu, float(np.max(d[CU])))
@@ -146,8 +147,9 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         tau_own = np.clip((k * dt - fa[idx]) / span[idx], 0.0, 1.0) * dur[idx]
         tau_abs = np.clip(kk * dt + c[idx] - t0[idx], 0.0, dur[idx])
         a_, v0, vc, ta, tc = R[idx, 1], R[idx, 2], R[idx, 3], R[idx, 4], R[idx, 5]
-        P = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_own)[:, None] * geo[idx, 3:]
-        Pa = geo[idx, :3] + _distance_v(a_, v0, vc, ta, tc, tau_abs)[:, None] * geo[idx, 3:]
+        G = geo[idx]
+        P = _along(G, _distance_v(a_, v0, vc, ta, tc, tau_own))
+        Pa = _along(G, _distance_v(a_, v0, vc, ta, tc, tau_abs))
         batch_pos.append(P)
         batch_abs.append(Pa)
         batch_k.append(kk)
@@ -238,6 +240,15 @@ class _SegmentTable:
     def close(self) -> None:
         if self.f is not None:
             self.f.close()
+
+
+def _along(G: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Points ``start + s * unit`` (n, 3) from rows ``G`` (n, 6) of start and unit vector, column by
+    column (the same values as broadcasting ``s[:, None]``, faster on millions of samples)."""
+    P = np.empty((len(s), 3))
+    for c in range(3):
+        P[:, c] = G[:, c] + s * G[:, 3 + c]
+    return P
 
 
 def _distance_v(a, v0, vc, ta, tc, tau):

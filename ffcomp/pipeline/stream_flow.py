@@ -21,6 +21,7 @@ from ..gcode.margins import hold_margins
 from ..gcode.planner import GcodePlan
 from ..gcode.sampler import sample_blocks
 from ..kinematics import carriage_rates
+from ..linalg3 import max_abs3
 from ..model.lpv import LpvModel
 from .limited_moves import holds
 from .options import JUMP_M, REST_MOVE, CompensateOptions, CompensationSummary
@@ -98,7 +99,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 break
         q = blk.q_m
         # homing (or any jump) restarts the compensation stream
-        jumps = np.nonzero(np.max(np.abs(np.diff(q, axis=0)), axis=1) > JUMP_M)[0] + 1
+        jumps = np.nonzero(max_abs3(np.diff(q, axis=0)) > JUMP_M)[0] + 1
         if last_q is not None and np.max(np.abs(q[0] - last_q)) > JUMP_M:
             jumps = np.concatenate([[0], jumps])
         # stops: the stream ends where the plan comes to rest (the first sample at or after the stop)
