@@ -147,17 +147,14 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 # unretraction's last: the previous block's if the move starts a block)
                 if where == "before" or b > 0:
                     r = b if where == "before" else b - 1
-                    qr, xr, lr = q[r], blk.xyz_m[r], blk.lineno[r]
+                    qr, xr, lr, mr = q[r], blk.xyz_m[r], blk.lineno[r], int(blk.move_index[r])
                 else:
-                    qr, xr, lr = last_q, last_x, last_ln
-                mv = moves[int(blk.move_index[b if where == "before" else b - 1])] if (where == "before" or b > 0) \
-                    else moves[int(prev_mi)]
-                er = mv.start_mm[3] if where == "before" else mv.end_mm[3]
-                fifo.push(q=np.repeat(qr[None], n_margin, 0), xyz=np.repeat(xr[None], n_margin, 0),
-                          e=np.full(n_margin, er), move_index=np.full(n_margin, REST_MOVE),
+                    qr, xr, lr, mr = last_q, last_x, last_ln, prev_mi
+                er = moves[mr].start_mm[3] if where == "before" else moves[mr].end_mm[3]
+                rest_q, rest_x = np.repeat(qr[None], n_margin, 0), np.repeat(xr[None], n_margin, 0)
+                fifo.push(q=rest_q, xyz=rest_x, e=np.full(n_margin, er), move_index=np.full(n_margin, REST_MOVE),
                           lineno=np.full(n_margin, lr), k=np.full(n_margin, -1, np.int64))
-                rest = np.repeat(qr[None], n_margin, 0)
-                yield from out(inv.push(rest, np.repeat(xr[None], n_margin, 0)))
+                yield from out(inv.push(rest_q, rest_x))
                 summ.hold_margins += 1
                 summ.hold_margin_time_s += n_margin * dt
                 a = b
