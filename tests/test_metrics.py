@@ -192,3 +192,21 @@ def test_contour_matches_brute_force(seed):
     act = ref[rng.integers(0, len(ref), 500)] + rng.normal(scale=2e-3, size=(500, 3))
     brute = point_segment_distance(act[:, None, :], ref[None, :-1], ref[None, 1:]).min(axis=1)
     np.testing.assert_allclose(contour_error(ref, act, k_neighbours=2), brute, rtol=1e-12, atol=1e-18)
+
+
+def test_evaluate_masked_is_evaluate_plus_the_masked_rms():
+    """One computation of each error serves the whole report and the masked RMS: the report equals
+    :func:`evaluate`'s, and an all-true mask gives the report's own RMS."""
+    from ffcomp.sim.metrics import evaluate, evaluate_masked
+
+    t = np.arange(400) * 1e-3
+    ref = np.stack([0.05 * np.sin(2 * np.pi * t), 0.05 * np.cos(2 * np.pi * t), np.zeros_like(t)], 1)
+    act = ref + 2e-5 * np.stack([np.sin(2 * np.pi * 60 * t), np.zeros_like(t), np.cos(2 * np.pi * 60 * t)], 1)
+    rep, (lag_all, cont_all) = evaluate_masked(t, ref, act, np.ones(len(t), bool))
+    ev = evaluate(t, ref, act)
+    assert (rep.time, rep.lag, rep.contour, rep.lag_s) == (ev.time, ev.lag, ev.contour, ev.lag_s)
+    assert lag_all == pytest.approx(rep.lag.rms_norm_um, rel=1e-9)
+    assert cont_all == pytest.approx(rep.contour.rms_norm_um, rel=1e-9)
+    _, (lag_half, _) = evaluate_masked(t, ref, act, t < 0.2)
+    assert lag_half > 0 and lag_half != lag_all
+    assert all(np.isnan(evaluate_masked(t, ref, act, np.zeros(len(t), bool))[1]))

@@ -217,10 +217,13 @@ def test_fast_z_travel_after_a_pinned_z_hop_keeps_the_clock(tmp_path):
     assert drift[RepairConfig().steep_accel_factor] < 1.0, drift
 
 
-def test_z_mode_auto_keeps_the_rest_before_a_z_move_on_the_plan(tmp_path, profile):
+@pytest.mark.parametrize("which", ["default", "other"])
+def test_z_mode_auto_keeps_the_rest_before_a_z_move_on_the_plan(tmp_path, profile, which):
     """``--z-mode auto`` writes the plan's z on moves that travel in z; the rest the stream adds
     before such a move follows the same rule (a z pre-actuated there jumped back onto the plan at the
-    move: 4.7 ms late after the homing), the rest before a layer move keeps its compensated z."""
+    move: 4.7 / 5.4 ms late after the homing), the rest before a layer move keeps its compensated z.
+    On other_delta (max_z_accel 3000) what is left, 0.54 ms, sits where the descent from the top brakes
+    at max_z_accel, not at the start."""
     from ffcomp.pipeline.compensate_flow import _rest_follows_moves
 
     mi = np.array([-1, -1, 0, 0, 1, 1, -1, -1, 2, -1])
@@ -230,5 +233,6 @@ def test_z_mode_auto_keeps_the_rest_before_a_z_move_on_the_plan(tmp_path, profil
     src.write_text("\n".join(["G28", "G90", "M83", "SET_VELOCITY_LIMIT ACCEL=10000", "G1 X-20 Y-20 Z5 F6000",
                               "G1 X20 Y-20 E1.5 F9000", "G1 X20 Y20 E1.5", "G1 X-20 Y20 E1.5",
                               "G1 X-20 Y-20 E1.5"]) + "\n")
-    s = compensate_file(str(src), str(tmp_path / "out.gcode"), profile, CompensateOptions(z_mode="auto", predict=False))
-    assert abs(s.self_check_drift_ms) < 0.5, s.self_check_drift_ms
+    prof = profile if which == "default" else load_profile(OTHER)
+    s = compensate_file(str(src), str(tmp_path / "out.gcode"), prof, CompensateOptions(z_mode="auto", predict=False))
+    assert abs(s.self_check_drift_ms) < (0.5 if which == "default" else 1.0), s.self_check_drift_ms

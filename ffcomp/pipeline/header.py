@@ -110,7 +110,7 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
     settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
                 f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
                 f"degree={opts.inverse.degree} sample_rate={lim.sample_rate_hz:g}Hz")
-    if getattr(opts, "hold_margin_s", 0.0):
+    if opts.hold_margin_s:
         settings += f" hold_margin={opts.hold_margin_s * 1e3:g}ms"
     head = [
         f"; ffcomp {__version__}: model-based feedforward vibration compensation (delta)",

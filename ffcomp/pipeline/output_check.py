@@ -16,7 +16,7 @@ from ..compensate.inverse import InverseConfig, invert
 from ..gcode.margins import with_margins
 from ..gcode.sampler import concat_blocks, sample_gcode
 from ..model.lpv import LpvModel
-from ..sim.metrics import ErrorReport, contour_error, evaluate, lag_aligned_error
+from ..sim.metrics import ErrorReport, evaluate_masked
 from ..sim.plant import DeltaPlant
 from .compensate_flow import CompensationSummary, compensate_file, inv_pre_samples
 
@@ -88,17 +88,10 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
                                      start_position_mm=start)).q_m[:len(q)]
     got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
     sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
-    none, exact, gcode = (evaluate(t, X, sim.xyz_m[r]) for r in range(3))
-    intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
     # extruding while moving: E rises over the sample and the nozzle moves faster than 1 mm/s
     speed = np.linalg.norm(np.gradient(X, axis=0), axis=1) / dt
     ext = (np.gradient(e) > 1e-6) & (speed > 1e-3)
-    extruding = {}
-    if ext.any():
-        for name, r in (("none", 0), ("exact", 1), ("gcode", 2)):
-            lag_err, _ = lag_aligned_error(t, X, sim.xyz_m[r])
-            cont = contour_error(X, sim.xyz_m[r])
-            extruding[name] = (float(np.sqrt(np.mean(np.sum(lag_err[ext] ** 2, axis=1)))) * 1e6,
-                               float(np.sqrt(np.mean(cont[ext] ** 2))) * 1e6)
+    (none, n_ex), (exact, e_ex), (gcode, g_ex) = (evaluate_masked(t, X, sim.xyz_m[r], ext) for r in range(3))
+    extruding = {"none": n_ex, "exact": e_ex, "gcode": g_ex} if ext.any() else {}
+    intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
     return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding)
-
