@@ -277,3 +277,44 @@ def test_z_mode_auto_keeps_the_rest_before_a_z_move_on_the_plan(tmp_path, profil
     prof = profile if which == "default" else load_profile(OTHER)
     s = compensate_file(str(src), str(tmp_path / "out.gcode"), prof, CompensateOptions(z_mode="auto", predict=False))
     assert abs(s.self_check_drift_ms) < (0.5 if which == "default" else 1.0), s.self_check_drift_ms
+
+
+def test_short_rest_to_rest_moves_the_firmware_cannot_time_are_holds(profile):
+    """A move from rest to rest needs ``2 sqrt(d / a)``: within the point tolerance, a dry one that
+    needs more than its time is written as a hold; a runnable, a long, an extruding or a moving-start
+    one is not."""
+    from ffcomp.gcode.writer import _unrunnable_rests
+
+    lim = ChainLimits(profile, 1e4, 5.0)
+    a = lim.max_z_accel  # pure z segments
+    z = 5.0
+    # a z move up, the reversal 1.4 um back (needs 2 sqrt(1.4e-3 / a) = 0.75 ms), a hold
+    P0 = np.array([[0, 0, z - 0.02], [0, 0, z], [0, 0, z - 0.0014]])
+    P1 = np.array([[0, 0, z], [0, 0, z - 0.0014], [0, 0, z - 0.0014]])
+    dist = np.linalg.norm(P1 - P0, axis=1)
+    hold = np.array([False, False, True])
+    dry = np.ones(3, bool)
+    need = 2 * np.sqrt(1.4e-3 / a)
+    for D1, expect in ((0.9 * need, True), (1.1 * need, False)):
+        D = np.array([1e-3, D1, 1e-3])
+        assert _unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 5e-3)[1] == expect
+    D = np.array([1e-3, 0.5 * need, 1e-3])
+    assert not _unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 1e-3)[1]  # beyond the tolerance
+    assert not _unrunnable_rests(lim, P0, P1, dist, D, hold, np.array([True, False, True]), 5e-3)[1]  # extrudes
+    P0b = P0.copy()
+    P0b[0] = [0, 0, z + 0.02]  # the move before comes down: no stop before the short one
+    assert not _unrunnable_rests(lim, P0b, P1, dist, D, hold, dry, 5e-3)[1]
+    assert not _unrunnable_rests(lim, P0, P1, dist, D, np.zeros(3, bool), dry, 5e-3)[1]  # no rest after
+
+
+@pytest.mark.parametrize("which,name", [("default", "stress_square.gcode"), ("other", "checksums.gcode")])
+def test_the_settling_after_a_files_last_z_move_keeps_the_clock(tmp_path, profile, which, name):
+    """The z move after a retraction is pinned to the plan; where it ends, the free command settles a
+    micrometre or two back before it stands still: a move from rest to rest the firmware cannot run
+    in a millisecond.  Written as a move it ran 0.28 ms (stress_square, default) and 1.16 ms
+    (checksums, other_delta) late; written as a hold the file keeps 0.2 ms."""
+    prof = profile if which == "default" else load_profile(OTHER)
+    s = compensate_file(str(ROOT / "samples" / "gcode" / name), str(tmp_path / "o.gcode"), prof,
+                        CompensateOptions(predict=False))
+    assert s.micro_holds >= 1
+    assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms

@@ -217,6 +217,7 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
         "segments": ("G1 segments written", "{}"),
+        "micro_holds": ("short rest-to-rest moves written as holds (within --tol-um)", "{}"),
         "steps": ("steps written", "{}"),
         "max_step_error_steps": ("max reconstruction error", "{:.3f} steps"),
     }

@@ -141,6 +141,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.notes.extend(bd.warning_messages[:20])
         _stage(progress, "writing", total_lines)
         summ.segments = bd.stats.segments
+        summ.micro_holds = bd.stats.micro_holds
         if bd.pred_n:
             summ.rms_before_um, summ.max_before_um = bd.rms_um(1), bd.pred_mx[1] * 1e6
             summ.rms_after_um, summ.max_after_um = bd.rms_um(0), bd.pred_mx[0] * 1e6

@@ -158,6 +158,9 @@ class CompensationSummary:
     #: rest margins added around retractions (``hold_margin_s``): how many, and the time they add, s
     hold_margins: int = 0
     hold_margin_time_s: float = 0.0
+    #: short moves from rest to rest the firmware could not run in their time, written as holds
+    #: (the nozzle stays within ``tol_um``; :func:`ffcomp.gcode.writer._unrunnable_rests`)
+    micro_holds: int = 0
 
     def to_dict(self) -> dict:
         return asdict(self)
