@@ -96,6 +96,8 @@ def main() -> None:
     ap.add_argument("--profiles", default="default,other_delta")
     ap.add_argument("--hold-margin-ms", type=float, default=None,
                     help="CompensateOptions.hold_margin_s in ms (rest added around retractions)")
+    ap.add_argument("--tol-um", type=float, default=None,
+                    help="CompensateOptions.tol_um (the writer's point placement tolerance, default 5)")
     a = ap.parse_args()
     profiles = {"default": (default_profile(), None),
                 "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
@@ -104,6 +106,8 @@ def main() -> None:
     extra = {}
     if a.z_mode:
         extra["z_mode"] = a.z_mode
+    if a.tol_um is not None:
+        extra["tol_um"] = a.tol_um
     if a.hold_margin_ms is not None:
         extra["hold_margin_s"] = a.hold_margin_ms * 1e-3
     if a.pin_holds:
