@@ -283,7 +283,7 @@ def test_short_rest_to_rest_moves_the_firmware_cannot_time_are_holds(profile):
     """A move from rest to rest needs ``2 sqrt(d / a)``: within the point tolerance, a dry one that
     needs more than its time is written as a hold; a runnable, a long, an extruding or a moving-start
     one is not."""
-    from ffcomp.gcode.writer import _unrunnable_rests
+    from ffcomp.gcode.holds import unrunnable_rests
 
     lim = ChainLimits(profile, 1e4, 5.0)
     a = lim.max_z_accel  # pure z segments
@@ -297,14 +297,14 @@ def test_short_rest_to_rest_moves_the_firmware_cannot_time_are_holds(profile):
     need = 2 * np.sqrt(1.4e-3 / a)
     for D1, expect in ((0.9 * need, True), (1.1 * need, False)):
         D = np.array([1e-3, D1, 1e-3])
-        assert _unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 5e-3)[1] == expect
+        assert unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 5e-3)[1] == expect
     D = np.array([1e-3, 0.5 * need, 1e-3])
-    assert not _unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 1e-3)[1]  # beyond the tolerance
-    assert not _unrunnable_rests(lim, P0, P1, dist, D, hold, np.array([True, False, True]), 5e-3)[1]  # extrudes
+    assert not unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 1e-3)[1]  # beyond the tolerance
+    assert not unrunnable_rests(lim, P0, P1, dist, D, hold, np.array([True, False, True]), 5e-3)[1]  # extrudes
     P0b = P0.copy()
     P0b[0] = [0, 0, z + 0.02]  # the move before comes down: no stop before the short one
-    assert not _unrunnable_rests(lim, P0b, P1, dist, D, hold, dry, 5e-3)[1]
-    assert not _unrunnable_rests(lim, P0, P1, dist, D, np.zeros(3, bool), dry, 5e-3)[1]  # no rest after
+    assert not unrunnable_rests(lim, P0b, P1, dist, D, hold, dry, 5e-3)[1]
+    assert not unrunnable_rests(lim, P0, P1, dist, D, np.zeros(3, bool), dry, 5e-3)[1]  # no rest after
 
 
 @pytest.mark.parametrize("which,name", [("default", "stress_square.gcode"), ("other", "checksums.gcode")])

@@ -36,14 +36,14 @@ def test_breakpoints_keep_every_sample_within_tolerance():
 def test_holds_leave_the_nozzle_where_it_was():
     """Sub-micrometre segments become holds (G4): the firmware stays put, so the next segment must
     start from the held point, however many holds pile up (else it would cover more than it is timed for)."""
-    from ffcomp.gcode.writer import _settle_holds
+    from ffcomp.gcode.holds import settle_holds
 
     P = np.zeros((8, 3))
     P[1:6, 0] = np.arange(1, 6) * 0.0008  # five sub-micrometre steps: 4 um in all
     P[6:, 0] = [0.1, 0.2]
     i, j = np.arange(7), np.arange(1, 8)
     first = np.r_[True, np.zeros(6, bool)]
-    Pr, d, dist, hold = _settle_holds(np.round(P, 4), i, j, first, np.array([0]), np.array([7]))
+    Pr, d, dist, hold = settle_holds(np.round(P, 4), i, j, first, np.array([0]), np.array([7]))
     assert hold[:5].all() and not hold[5:].any()
     np.testing.assert_allclose(Pr[:6], 0.0)  # held at the start
     assert dist[5] == pytest.approx(0.1)  # the next segment covers the whole way from the held point

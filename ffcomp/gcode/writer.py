@@ -44,6 +44,7 @@ import numpy as np
 from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
+from .holds import settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .plan_clock import plan_speeds, rest_end, rest_start
@@ -431,15 +432,15 @@ class GcodeWriter:
         # the firmware sees the printed (rounded) coordinates: durations must come from those
         Pr = np.round(P, 4)
         first_seg = np.concatenate(([True], srun[1:] != srun[:-1]))
-        Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last)
+        Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last)
         if self.chain is not None:  # (a hold moves the next segment's start: a few passes)
             micro = np.zeros(len(i), bool)
             for _ in range(3):
-                new = _unrunnable_rests(self.chain, Pr[i], Pr[j], dist, dt, hold, Ef[j] == Ef[i], self.tol)
+                new = unrunnable_rests(self.chain, Pr[i], Pr[j], dist, dt, hold, Ef[j] == Ef[i], self.tol)
                 if not new.any():
                     break
                 micro |= new
-                Pr, d, dist, hold = _settle_holds(Pr, i, j, first_seg, offs, last, force=micro)
+                Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last, force=micro)
             self.stats.micro_holds += int(micro.sum())
         de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
                                            hold), run_ids[srun], ext_de, ext_runs)
@@ -666,76 +667,6 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     out = de.copy()
     out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
     return out
-
-
-def _unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
-                      hold: np.ndarray, dry: np.ndarray, tol_mm: float) -> np.ndarray:
-    """Segments better written as holds: short moves from rest to rest that the firmware cannot run
-    in their time.
-
-    Where a pinned z move ends (the plan stops, the path reverses) the free command after it settles
-    by a micrometre or two before it stands still again.  Klipper stops at both ends of such a
-    segment (a reversal before it, a ``G4`` after it) and needs ``2 sqrt(d / a)`` for its length
-    ``d``: more than the millisecond it is given, so the output ran up to 1.2 ms late there until
-    the ``G4`` gave the time back.  A segment within the point tolerance ``tol_mm`` of its start,
-    with no extrusion (``dry``), that starts from rest (the junction before it allows no more
-    than the peak speed of its own rest-to-rest ramp) and ends at a hold, and that needs more than
-    its time ``D`` (s) that way, stands still instead: the nozzle stays within ``tol_mm``.
-    """
-    n = len(dist)
-    out = np.zeros(n, bool)
-    if n < 2:
-        return out
-    moving = ~hold
-    vmax, acc = segment_limits(lim, P0, P1, np.zeros(n))
-    cand = moving & dry & (dist <= tol_mm) & (dist > 0.25 * acc * D * D) & np.r_[hold[1:], False]
-    if not cand.any():
-        return out
-    k = np.nonzero(cand & np.r_[False, np.ones(n - 1, bool)])[0]
-    prev_rest = hold[k - 1]
-    turn = ~prev_rest & moving[k - 1]
-    if turn.any():  # the junction before: a full stop when the path reverses
-        a, b = P1[k - 1] - P0[k - 1], P1[k] - P0[k]
-        cos = np.einsum("ij,ij->i", a, b) / np.maximum(dist[k - 1] * dist[k], 1e-300)
-        prev_rest |= turn & (cos < -0.999)
-    out[k[prev_rest]] = True
-    return out
-
-
-def _settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.ndarray, offs: np.ndarray,
-                  last: np.ndarray, force: np.ndarray | None = None):
-    """Segments under a micrometre are written as holds (the firmware would crawl): the nozzle stays
-    where the last written segment left it, so the end point of a hold is its start point, and the
-    next segment (or the next run, which starts where the previous one ended) starts from there;
-    a few vectorised passes settle the cascade.  ``force``: segments written as holds whatever
-    their length (:func:`_unrunnable_rests`).  Returns ``Pr`` (points as written), the segment
-    vectors, lengths and hold flags."""
-    Pr = Pr.copy()
-    n = len(i)
-    for _ in range(6):
-        d = Pr[j] - Pr[i]
-        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-        hold = dist < 1e-3
-        if force is not None:
-            hold |= force
-        if not hold.any():
-            break
-        # the first hold of each group of consecutive holds (within a run) is its root
-        grp_start = hold & (first_seg | ~np.concatenate(([False], hold[:-1])))
-        root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
-        moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
-        if len(offs) > 1:  # a run starts where the previous one ended
-            lead_bad = np.any(Pr[offs[1:]] != Pr[last[:-1]], axis=1)
-        else:
-            lead_bad = np.zeros(0, bool)
-        if not moved.any() and not lead_bad.any():
-            break
-        Pr[j[hold]] = Pr[i[root[hold]]]
-        if len(offs) > 1:
-            Pr[offs[1:]] = Pr[last[:-1]]
-    d = Pr[j] - Pr[i]
-    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
-    return Pr, d, dist, (dist < 1e-3) if force is None else (dist < 1e-3) | force
 
 
 class _Run(NamedTuple):

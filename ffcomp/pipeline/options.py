@@ -159,7 +159,7 @@ class CompensationSummary:
     hold_margins: int = 0
     hold_margin_time_s: float = 0.0
     #: short moves from rest to rest the firmware could not run in their time, written as holds
-    #: (the nozzle stays within ``tol_um``; :func:`ffcomp.gcode.writer._unrunnable_rests`)
+    #: (the nozzle stays within ``tol_um``; :func:`ffcomp.gcode.holds.unrunnable_rests`)
     micro_holds: int = 0
 
     def to_dict(self) -> dict:

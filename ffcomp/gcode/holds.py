@@ -1,0 +1,87 @@
+"""Segments the writer turns into holds (``G4``): the firmware stands still there instead.
+
+* :func:`settle_holds`: segments under a micrometre (the firmware would crawl), and the cascade of
+  start points they move;
+* :func:`unrunnable_rests`: short moves from rest to rest that the firmware cannot run in their
+  time (the settling after a pinned z move), within the point tolerance.
+
+Pure numeric kernels on the writer's points (no I/O), called by :class:`~ffcomp.gcode.writer.GcodeWriter`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .chain_plan import ChainLimits, segment_limits
+
+__all__ = ["settle_holds", "unrunnable_rests"]
+
+
+def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
+                      hold: np.ndarray, dry: np.ndarray, tol_mm: float) -> np.ndarray:
+    """Segments better written as holds: short moves from rest to rest that the firmware cannot run
+    in their time.
+
+    Where a pinned z move ends (the plan stops, the path reverses) the free command after it settles
+    by a micrometre or two before it stands still again.  Klipper stops at both ends of such a
+    segment (a reversal before it, a ``G4`` after it) and needs ``2 sqrt(d / a)`` for its length
+    ``d``: more than the millisecond it is given, so the output ran up to 1.2 ms late there until
+    the ``G4`` gave the time back.  A segment within the point tolerance ``tol_mm`` of its start,
+    with no extrusion (``dry``), that starts from rest (the junction before it allows no more
+    than the peak speed of its own rest-to-rest ramp) and ends at a hold, and that needs more than
+    its time ``D`` (s) that way, stands still instead: the nozzle stays within ``tol_mm``.
+    """
+    n = len(dist)
+    out = np.zeros(n, bool)
+    if n < 2:
+        return out
+    moving = ~hold
+    vmax, acc = segment_limits(lim, P0, P1, np.zeros(n))
+    cand = moving & dry & (dist <= tol_mm) & (dist > 0.25 * acc * D * D) & np.r_[hold[1:], False]
+    if not cand.any():
+        return out
+    k = np.nonzero(cand & np.r_[False, np.ones(n - 1, bool)])[0]
+    prev_rest = hold[k - 1]
+    turn = ~prev_rest & moving[k - 1]
+    if turn.any():  # the junction before: a full stop when the path reverses
+        a, b = P1[k - 1] - P0[k - 1], P1[k] - P0[k]
+        cos = np.einsum("ij,ij->i", a, b) / np.maximum(dist[k - 1] * dist[k], 1e-300)
+        prev_rest |= turn & (cos < -0.999)
+    out[k[prev_rest]] = True
+    return out
+
+
+def settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.ndarray, offs: np.ndarray,
+                  last: np.ndarray, force: np.ndarray | None = None):
+    """Segments under a micrometre are written as holds (the firmware would crawl): the nozzle stays
+    where the last written segment left it, so the end point of a hold is its start point, and the
+    next segment (or the next run, which starts where the previous one ended) starts from there;
+    a few vectorised passes settle the cascade.  ``force``: segments written as holds whatever
+    their length (:func:`unrunnable_rests`).  Returns ``Pr`` (points as written), the segment
+    vectors, lengths and hold flags."""
+    Pr = Pr.copy()
+    n = len(i)
+    for _ in range(6):
+        d = Pr[j] - Pr[i]
+        dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+        hold = dist < 1e-3
+        if force is not None:
+            hold |= force
+        if not hold.any():
+            break
+        # the first hold of each group of consecutive holds (within a run) is its root
+        grp_start = hold & (first_seg | ~np.concatenate(([False], hold[:-1])))
+        root = np.maximum.accumulate(np.where(grp_start, np.arange(n), -1))
+        moved = hold & np.any(Pr[j] != Pr[i[np.maximum(root, 0)]], axis=1)
+        if len(offs) > 1:  # a run starts where the previous one ended
+            lead_bad = np.any(Pr[offs[1:]] != Pr[last[:-1]], axis=1)
+        else:
+            lead_bad = np.zeros(0, bool)
+        if not moved.any() and not lead_bad.any():
+            break
+        Pr[j[hold]] = Pr[i[root[hold]]]
+        if len(offs) > 1:
+            Pr[offs[1:]] = Pr[last[:-1]]
+    d = Pr[j] - Pr[i]
+    dist = np.sqrt(np.einsum("ij,ij->i", d, d))
+    return Pr, d, dist, (dist < 1e-3) if force is None else (dist < 1e-3) | force
