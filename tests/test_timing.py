@@ -318,3 +318,24 @@ def test_the_settling_after_a_files_last_z_move_keeps_the_clock(tmp_path, profil
                         CompensateOptions(predict=False))
     assert s.micro_holds >= 1
     assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms
+
+
+def test_the_timing_state_carries_dwells_and_feeds_as_written(profile):
+    """``G4 P`` is written in ms with three decimals and extruder-only feeds in mm/min with three: the
+    timing state must carry those values, not the exact ones (a microsecond rounded off at every
+    retraction crept to +0.16 ms over the 3.35 h plate while the writer believed itself on time)."""
+    lim = ChainLimits(profile, 1e4, 5.0)
+    for D in (1.0004e-3, 2.3456789e-3):  # a dwell's intended time with a sub-microsecond part
+        st = fs.TimingState()
+        F = fs.solve_feeds(lim, st, np.zeros((1, 3)), np.zeros((1, 3)), np.array([D]), np.zeros(1),
+                           np.ones(1, bool), np.zeros(1, bool), False)
+        written = float(f"{F[0] * 1000:.3f}") / 1000
+        assert written == pytest.approx(F[0], abs=1e-12)
+        assert st.late_s == pytest.approx(written - D, abs=1e-12)
+    st = fs.TimingState()
+    de, D = np.array([-0.8]), np.array([0.0213457])  # a retraction
+    F = fs.solve_feeds(lim, st, np.zeros((1, 3)), np.zeros((1, 3)), D, de, np.ones(1, bool), np.zeros(1, bool), False)
+    v = float(f"{F[0] * 60:.3f}") / 60
+    t = float(fs.extrude_only_time(np.abs(de), np.array([v]), lim.max_e_accel)[0])
+    assert st.late_s == pytest.approx(t - D[0], abs=1e-12)
+    assert fs.dwell_as_written(1.2345678e-3) == pytest.approx(1.235e-3, abs=1e-15)
