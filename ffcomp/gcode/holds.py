@@ -27,9 +27,10 @@ def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.
     segment (a reversal before it, a ``G4`` after it) and needs ``2 sqrt(d / a)`` for its length
     ``d``: more than the millisecond it is given, so the output ran up to 1.2 ms late there until
     the ``G4`` gave the time back.  A segment within the point tolerance ``tol_mm`` of its start,
-    with no extrusion (``dry``), that starts from rest (the junction before it allows no more
-    than the peak speed of its own rest-to-rest ramp) and ends at a hold, and that needs more than
-    its time ``D`` (s) that way, stands still instead: the nozzle stays within ``tol_mm``.
+    with no extrusion (``dry``), that starts from rest (a hold before it, or a reversal of the
+    path: Klipper's junction there is a full stop) and ends at a hold, and that needs more than its
+    time ``D`` (s) from rest to rest at its acceleration limit, stands still instead: the nozzle
+    stays within ``tol_mm``.
     """
     n = len(dist)
     out = np.zeros(n, bool)
