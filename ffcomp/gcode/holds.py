@@ -37,11 +37,15 @@ def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.
     if n < 2:
         return out
     moving = ~hold
-    vmax, acc = segment_limits(lim, P0, P1, np.zeros(n))
-    cand = moving & dry & (dist <= tol_mm) & (dist > 0.25 * acc * D * D) & np.r_[hold[1:], False]
-    if not cand.any():
+    # the cheap tests first (this runs on every chunk); the limits only for what is left
+    k = np.nonzero(moving & dry & (dist <= tol_mm) & np.r_[hold[1:], False])[0]
+    k = k[k > 0]
+    if not k.size:
         return out
-    k = np.nonzero(cand & np.r_[False, np.ones(n - 1, bool)])[0]
+    acc = segment_limits(lim, P0[k], P1[k], np.zeros(k.size))[1]
+    k = k[dist[k] > 0.25 * acc * D[k] * D[k]]
+    if not k.size:
+        return out
     prev_rest = hold[k - 1]
     turn = ~prev_rest & moving[k - 1]
     if turn.any():  # the junction before: a full stop when the path reverses
