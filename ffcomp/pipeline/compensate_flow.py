@@ -296,7 +296,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             dense = shift = None
             if bound is not None:
                 # with the pin repair those moves are pinned (the plan, sample by sample): no blend
-                w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair)
+                w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair,
+                                      z_limited=zlim.limited if zlim is not None else None)
                 dense = (w > 0) | (wz > 0)
                 if dense.any():
                     xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])

@@ -81,16 +81,36 @@ class LimitBound:
         nxt = moves.get(mv.index + 1)
         return nxt is not None and nxt.kind != "move"
 
-    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24, blend_moves: bool = True
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def z_follows_plan(self, mv, moves: dict, z_limited=None, max_chain: int = 64) -> bool:
+        """Whether ``mv``'s z follows the plan: a move with z travel right after a hold
+        (:meth:`z_after_hold`), and every move right after such a one that ``z_limited`` (a
+        predicate, e.g. :meth:`ZLimited.limited`) says ``max_z_accel`` binds.  The plan already
+        accelerates such a move in z as hard as the firmware allows, so blending the command back
+        from the plan's z onto its own there adds acceleration the firmware caps: the segments run
+        late (2 ms on a z-only move after an XYZ move after a retraction, ``other_delta``).  The
+        blend then falls in the first move after them."""
+        for _ in range(max_chain):
+            if self.z_after_hold(mv, moves):
+                return True
+            if z_limited is None or mv.kind != "move" or not z_limited(mv):
+                return False
+            mv = moves.get(mv.index - 1)
+            if mv is None:
+                return False
+        return False
+
+    def weights(self, move_index: np.ndarray, moves: dict, blend: int = 24, blend_moves: bool = True,
+                z_limited=None) -> tuple[np.ndarray, np.ndarray]:
         """Share of the plan in each sample, for all axes and for z alone: 1 on the moves it takes
         over, a raised-cosine blend over ``blend`` samples either side (the compensated command
         pre-actuates a move before it starts and settles after it: without the blend the firmware
         would have to jump).  ``blend_moves=False``: the all-axes share without the blend (the pin
-        repair has already brought the command onto the plan there)."""
+        repair has already brought the command onto the plan there).  ``z_limited``: see
+        :meth:`z_follows_plan`."""
         m = self.mask(move_index, moves)
         return (self._blend(m, blend) if blend_moves else m.astype(float),
-                self._blend(moves_where(move_index, moves, lambda mv: self.z_after_hold(mv, moves)), blend))
+                self._blend(moves_where(move_index, moves, lambda mv: self.z_follows_plan(mv, moves, z_limited)),
+                            blend))
 
     @staticmethod
     def _blend(m: np.ndarray, blend: int) -> np.ndarray:

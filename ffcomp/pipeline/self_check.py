@@ -19,6 +19,10 @@ __all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_
 #: drift (ms) above which the summary notes the timing cost
 TIMING_NOTE_MS = 0.2
 
+#: a list, or None: if a list, :func:`measure` appends per batch of re-planned segments
+#: ``(output line, end time s, lateness s, re-planned duration s, intended duration s)`` (debugging)
+TRACE: list | None = None
+
 
 
 
@@ -132,6 +136,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + fb + c)  # how late each segment ends, s
+        if TRACE is not None:
+            TRACE.append((R[:, 0].copy(), t0 + dur, late.copy(), dur.copy(), (kb - ka) * dt + fb - fa))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
