@@ -354,3 +354,18 @@ def test_z_follows_the_plan_through_z_limited_moves_after_a_retraction(tmp_path)
     s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
                         CompensateOptions(predict=False, self_check_drift_ms=1e9))
     assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 1.81 ms before
+
+
+def test_a_fast_change_of_extrusion_ratio_keeps_the_clock(tmp_path, profile):
+    """A retracting move, a z move, then an XYZ print move at 0.14 mm of filament per mm (a small
+    random file): the written segments' ratios stepped from -0.04 to 0.15 over junctions the
+    command passes at 60-470 mm/s, and Klipper capped each at ``icv / |diff_r|``: 3.3 ms late.  The
+    steps now stay within the junction limit (``gcode.extrusion.limit_ratio_steps``)."""
+    text = ("G90\nM83\nG28\nG1 X2.025 Y2.245 Z3.942 F9919\nG1 X0.553 Y-0.010 Z6.080 E-0.3736 F4822\n"
+            "G1 Z6.428 F5432\nG1 X3.827 Y8.539 Z9.864 E1.3579 F14865\nG1 X-0.261 Y-2.770 E1.5839 F5303\n"
+            "G1 X22.062 Y13.429 Z12.976 F4100\n")
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
+                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
+    assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 3.33 ms before

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
+from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
@@ -443,7 +444,10 @@ class GcodeWriter:
                 Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last, force=micro)
             self.stats.micro_holds += int(micro.sum())
         de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
-                                           hold), run_ids[srun], ext_de, ext_runs)
+                                           hold, speed_mm_s=dist / dt,
+                                           icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None,
+                                           capped=np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]),
+                             run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
         fixed_v = None
         if self.chain is not None and on_plan is not None and k_plan is not None:
@@ -600,73 +604,6 @@ class GcodeWriter:
 
     def finish(self) -> None:
         self.flush_lines(1 << 62)
-
-
-#: after a change of extrusion ratio, segments keep the extrusion of their reference time until its
-#: ratio comes within this share of the group's (see :func:`by_length`)
-EDGE_SHARE = 0.03
-
-
-def flow_groups(moves: list, rel_tol: float = 0.01) -> np.ndarray:
-    """Group ids of consecutive motion runs whose source moves extrude at the same ratio (mm of
-    filament per mm of XYZ travel, within ``rel_tol``; travel moves: 0): Klipper sees no extruder
-    junction between such source moves, so their written segments share one ratio too."""
-    r = np.array([((m.end_mm[3] - m.start_mm[3]) / max(float(np.linalg.norm(np.subtract(m.end_mm[:3], m.start_mm[:3]))),
-                                                       1e-12)) if m is not None else np.nan for m in moves])
-    same = np.abs(np.diff(r)) <= rel_tol * np.maximum(np.abs(r[1:]), np.abs(r[:-1]))
-    return np.concatenate([[0], np.cumsum(~same)])
-
-
-def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.ndarray) -> np.ndarray:
-    """Each group's extrusion shared among its segments in proportion to their written length.
-
-    Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
-    ``instantaneous_corner_velocity / |diff_r|`` (1 mm/s by default).  The reference gives each
-    segment the extrusion of its samples' time, but the compensated segments' lengths differ from
-    the reference path's over the same time by a few per cent at corners, so at high flow (0.1 mm of
-    filament per mm) the ratios of neighbouring segments differ by ~0.005 and the firmware slows
-    the junctions to ~200 mm/s, running late (or, after the feed solve, early).  Within a group
-    (consecutive runs whose source moves share one ratio, :func:`flow_groups`) the source has no
-    such junction, so the group's extrusion is spread by length: its total is unchanged, its
-    junctions see ``diff_r = 0``.
-    Holds (segments under a micrometre), the segments at a group's start whose own ratio has not
-    yet come within ``EDGE_SHARE`` of the group's (the first spans the corner from the previous
-    ratio; keeping them, the ratio changes over several junctions instead of at once), and groups
-    without length keep their own values.
-
-    Parameters
-    ----------
-    de : (n,) extrusion of each segment over its samples' reference time, mm
-    dist_mm : (n,) written length of each segment, mm
-    group : (n,) non-decreasing group id of each segment (:func:`flow_groups` of its run)
-    hold : (n,) segments written as holds
-    """
-    de = np.asarray(de, float)
-    if not len(de):
-        return de
-    g = np.asarray(group)
-    n = len(g)
-    hold = np.asarray(hold, bool)
-    start = np.concatenate(([False], g[1:] != g[:-1]))
-    _, gi = np.unique(g, return_inverse=True)
-    # after a change of ratio (not at the chunk's start: the group may continue the last chunk's)
-    # the segments keep their reference-time extrusion until its ratio comes within EDGE_SHARE
-    ok_d = ~hold & (dist_mm > 1e-9)
-    rho_g = np.bincount(gi, weights=np.where(ok_d, de, 0.0)) / np.maximum(
-        np.bincount(gi, weights=np.where(ok_d, dist_mm, 0.0)), 1e-12)
-    rho = np.where(ok_d, de / np.where(ok_d, dist_mm, 1.0), rho_g[gi])
-    near = np.abs(rho - rho_g[gi]) <= EDGE_SHARE * np.abs(rho_g[gi])
-    # the edge: from a group's first segment up to its first segment near the group's ratio
-    reached = np.maximum.accumulate(np.where(near, np.arange(n), -1))
-    first = np.maximum.accumulate(np.where(start, np.arange(n), -1))
-    edge = (first >= 0) & (reached < first)
-    free = ~hold & ~edge
-    tot_e = np.bincount(gi, weights=np.where(free, de, 0.0))
-    tot_d = np.bincount(gi, weights=np.where(free, dist_mm, 0.0))
-    ok = (tot_d > 1e-6)[gi] & free
-    out = de.copy()
-    out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
-    return out
 
 
 class _Run(NamedTuple):

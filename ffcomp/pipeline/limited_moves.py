@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..gcode.chain_plan import ChainLimits, segment_limits
+from ..gcode.extrusion import extruder_capped as _extruder_capped
 
 __all__ = ["LimitBound", "ZLimited", "moves_where", "holds", "z_held", "z_moving", "z_hop"]
 
@@ -210,15 +211,6 @@ class _NoAccel:
         self.__dict__.update(lim.__dict__)
         self.accel = self.max_velocity = self.max_z_accel = self.max_z_velocity = float("inf")
         self.slow_xy2 = self.very_slow_xy2 = float("inf")
-
-
-def _extruder_capped(mv) -> bool:
-    """Whether the extruder's limits apply to ``mv`` at all (Klipper's extruder ``check_move``: it
-    retracts, or extrudes without XY travel); elsewhere :class:`_NoAccel` leaves its acceleration
-    unbounded, so a move failing this test is never bound (and needs no arrays)."""
-    s, e = mv.start_mm, mv.end_mm
-    de = e[3] - s[3]
-    return bool(de != 0 and (de < 0 or (e[0] - s[0] == 0 and e[1] - s[1] == 0)))
 
 
 def z_hop(mv) -> bool:

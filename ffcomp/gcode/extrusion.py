@@ -1,0 +1,207 @@
+"""How much filament each written segment extrudes: the source's ratios kept across the
+compensated segments, and the ratio's changes kept within the extruder's junction limit.
+
+Klipper slows the junction of two segments whose extrusion ratios ``e/d`` (mm of filament per mm
+of XYZ travel) differ to ``instantaneous_corner_velocity / |diff_r|`` (1 mm/s by default).  The
+compensated segments are not the source's: their extrusion starts from the reference's (the
+extrusion of each segment's samples' time), which a few per cent of length difference near corners
+and the command's lead or lag at a change of ratio turn into ratio steps between neighbouring
+segments.  :func:`by_length` evens the ratio within a group of source moves of one ratio and
+limits the steps at a group's start.  Pure numerics on per-segment arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "flow_groups", "by_length", "limit_ratio_steps", "extruder_capped"]
+
+#: after a change of extrusion ratio, segments keep the extrusion of their reference time until its
+#: ratio comes within this share of the group's (see :func:`by_length`)
+EDGE_SHARE = 0.03
+
+#: the written ratio changes by at most this share of ``instantaneous_corner_velocity / v`` at a
+#: junction the firmware passes at ``v`` (see :func:`limit_ratio_steps`)
+RATIO_STEP_SHARE = 0.7
+
+
+def extruder_capped(mv) -> bool:
+    """Whether the extruder's limits apply to the planned move ``mv`` at all (Klipper's extruder
+    ``check_move``: it retracts, or extrudes without XY travel: its speed and acceleration are then
+    capped at the extruder's over ``|e/d|``); None (no move): False."""
+    if mv is None:
+        return False
+    s, e = mv.start_mm, mv.end_mm
+    de = e[3] - s[3]
+    return bool(de != 0 and (de < 0 or (e[0] - s[0] == 0 and e[1] - s[1] == 0)))
+
+
+def flow_groups(moves: list, rel_tol: float = 0.01) -> np.ndarray:
+    """Group ids of consecutive motion runs whose source moves extrude at the same ratio (mm of
+    filament per mm of XYZ travel, within ``rel_tol``; travel moves: 0): Klipper sees no extruder
+    junction between such source moves, so their written segments share one ratio too."""
+    r = np.array([((m.end_mm[3] - m.start_mm[3]) / max(float(np.linalg.norm(np.subtract(m.end_mm[:3], m.start_mm[:3]))),
+                                                       1e-12)) if m is not None else np.nan for m in moves])
+    same = np.abs(np.diff(r)) <= rel_tol * np.maximum(np.abs(r[1:]), np.abs(r[:-1]))
+    return np.concatenate([[0], np.cumsum(~same)])
+
+
+def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.ndarray,
+              speed_mm_s: np.ndarray | None = None, icv_mm_s: float | None = None,
+              capped: np.ndarray | None = None) -> np.ndarray:
+    """Each group's extrusion shared among its segments in proportion to their written length.
+
+    Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
+    ``instantaneous_corner_velocity / |diff_r|`` (1 mm/s by default).  The reference gives each
+    segment the extrusion of its samples' time, but the compensated segments' lengths differ from
+    the reference path's over the same time by a few per cent at corners, so at high flow (0.1 mm of
+    filament per mm) the ratios of neighbouring segments differ by ~0.005 and the firmware slows
+    the junctions to ~200 mm/s, running late (or, after the feed solve, early).  Within a group
+    (consecutive runs whose source moves share one ratio, :func:`flow_groups`) the source has no
+    such junction, so the group's extrusion is spread by length: its total is unchanged, its
+    junctions see ``diff_r = 0``.
+    Holds (segments under a micrometre), the segments at a group's start whose own ratio has not
+    yet come within ``EDGE_SHARE`` of the group's (the first spans the corner from the previous
+    ratio; keeping them, the ratio changes over several junctions instead of at once), and groups
+    without length keep their own values.
+
+    Parameters
+    ----------
+    de : (n,) extrusion of each segment over its samples' reference time, mm
+    dist_mm : (n,) written length of each segment, mm
+    group : (n,) non-decreasing group id of each segment (:func:`flow_groups` of its run)
+    hold : (n,) segments written as holds
+    speed_mm_s, icv_mm_s : each segment's intended mean speed and the firmware's
+        ``instantaneous_corner_velocity``: if given, the ratio steps at a group's start are then kept
+        within the junction limit (:func:`limit_ratio_steps`)
+    capped : (n,) segments of moves the extruder's own limits cap (see :func:`limit_ratio_steps`)
+    """
+    de = np.asarray(de, float)
+    if not len(de):
+        return de
+    g = np.asarray(group)
+    n = len(g)
+    hold = np.asarray(hold, bool)
+    start = np.concatenate(([False], g[1:] != g[:-1]))
+    _, gi = np.unique(g, return_inverse=True)
+    # after a change of ratio (not at the chunk's start: the group may continue the last chunk's)
+    # the segments keep their reference-time extrusion until its ratio comes within EDGE_SHARE
+    ok_d = ~hold & (dist_mm > 1e-9)
+    rho_g = np.bincount(gi, weights=np.where(ok_d, de, 0.0)) / np.maximum(
+        np.bincount(gi, weights=np.where(ok_d, dist_mm, 0.0)), 1e-12)
+    rho = np.where(ok_d, de / np.where(ok_d, dist_mm, 1.0), rho_g[gi])
+    near = np.abs(rho - rho_g[gi]) <= EDGE_SHARE * np.abs(rho_g[gi])
+    # the edge: from a group's first segment up to its first segment near the group's ratio
+    reached = np.maximum.accumulate(np.where(near, np.arange(n), -1))
+    first = np.maximum.accumulate(np.where(start, np.arange(n), -1))
+    edge = (first >= 0) & (reached < first)
+    free = ~hold & ~edge
+    tot_e = np.bincount(gi, weights=np.where(free, de, 0.0))
+    tot_d = np.bincount(gi, weights=np.where(free, dist_mm, 0.0))
+    ok = (tot_d > 1e-6)[gi] & free
+    out = de.copy()
+    out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
+    if speed_mm_s is not None and icv_mm_s is not None:
+        out = limit_ratio_steps(out, dist_mm, np.asarray(speed_mm_s, float), g, hold, edge, float(icv_mm_s),
+                                capped=capped)
+    return out
+
+
+def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray, group: np.ndarray,
+                      hold: np.ndarray, edge: np.ndarray, icv_mm_s: float,
+                      share: float = RATIO_STEP_SHARE, capped: np.ndarray | None = None,
+                      max_shift: float = 0.1) -> np.ndarray:
+    """Extrusions whose ratio changes from segment to segment no faster than the firmware's
+    junction limit lets the segments keep their speed.
+
+    Klipper passes the junction of two segments whose ratios differ by ``diff_r`` at no more than
+    ``icv / |diff_r|``.  At a change of ratio (a travel into a print move) the written segments'
+    ratios step from the old ratio to the new over the first few segments (their reference-time
+    extrusion, :func:`by_length`), and where the command moves fast there, a step of 0.02 at
+    150 mm/s caps the junction at 50 mm/s: the file ran 1-3 ms late.  Wherever a junction inside or
+    at the start of a group would be capped below ``max(v_prev, v_next) / share``, the group's
+    ratios from its start on are ramped instead: each step within ``share * icv / max(v_prev,
+    v_next)``, towards the reference-time ratio on the group's first segments (``edge``) and the
+    group's even ratio after them, which takes up the extrusion the ramp held back (a few passes), so
+    the group's total is unchanged.  The firmware stops at a hold: the ramp starts afresh after it.
+    A group that ends before its ramp does is scaled to its total instead.  A group whose even ratio
+    would move by more than ``max_shift`` (relative) to take up the ramp's extrusion, or that holds
+    segments the extruder's own limits cap (``capped``: extruding without XY travel, or retracting:
+    Klipper caps those at ``max_extrude_only_velocity / |r|``, so a higher ratio runs slower), keeps
+    :func:`by_length`'s values.
+
+    Parameters
+    ----------
+    e : (n,) extrusion of each segment (:func:`by_length`'s), mm
+    dist_mm, speed_mm_s : (n,) each segment's written length (mm) and intended mean speed (mm/s)
+    group, hold, edge : (n,) group ids (non-decreasing), holds, and a group's first segments that
+        keep their reference-time extrusion
+    icv_mm_s : the firmware's ``instantaneous_corner_velocity``, mm/s
+    share : see :data:`RATIO_STEP_SHARE`
+    capped : (n,) bool, optional
+    max_shift : largest relative change of a group's even ratio
+    """
+    n = len(e)
+    if n < 2 or icv_mm_s <= 0:
+        return e
+    ok = ~hold & (dist_mm > 1e-9)
+    r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
+    v = np.where(ok, speed_mm_s, 0.0)
+    lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)  # junction j | j + 1
+    bad = ok[1:] & ok[:-1] & (np.abs(np.diff(r)) > lim * 1.0001)
+    if not bad.any():
+        return e
+    out = e.copy()
+    starts = np.nonzero(np.r_[True, group[1:] != group[:-1]])[0]
+    for g0, g1 in zip(starts.tolist(), np.r_[starts[1:], n].tolist()):
+        if not bad[max(g0 - 1, 0):g1 - 1].any() or (capped is not None and capped[g0:g1].any()):
+            continue
+        seg = np.arange(g0, g1)
+        mov = ok[g0:g1]
+        total = float(out[g0:g1][mov].sum())
+        free = mov & ~edge[g0:g1]
+        rho = float(r[g0:g1][free][0]) if free.any() else None  # the group's even ratio (by_length)
+        rho0 = rho
+        new = out[g0:g1].copy()
+        for _ in range(4):
+            new = out[g0:g1].copy()
+            rp = r[g0 - 1] if g0 > 0 and ok[g0 - 1] else None
+            reached = None
+            for q, idx in enumerate(seg.tolist()):
+                if not ok[idx]:
+                    if hold[idx]:
+                        rp = None
+                    continue
+                want = rho if (free[q] and rho is not None) else r[idx]
+                if rp is not None and idx > 0 and ok[idx - 1]:
+                    c = lim[idx - 1]
+                    want = min(max(want, rp - c), rp + c)
+                new[q] = want * dist_mm[idx]
+                rp = want
+                if free[q] and want == rho:
+                    reached = q
+                    break
+            if reached is None:
+                break
+            after = np.zeros(len(seg), bool)
+            after[reached + 1:] = free[reached + 1:]
+            d_after = float(dist_mm[g0:g1][after].sum())
+            if d_after <= 1e-9:
+                reached = None
+                break
+            rest = total - float(new[:reached + 1][mov[:reached + 1]].sum())
+            rest -= float(new[reached + 1:][mov[reached + 1:] & ~after[reached + 1:]].sum())
+            rho_new = rest / d_after
+            new[after] = rho_new * dist_mm[g0:g1][after]
+            if abs(rho_new - rho) <= 0.1 * lim[g0 + reached]:  # (the step there stays within the limit)
+                break
+            rho = rho_new
+        if reached is None:  # the ramp outlasts the group: keep its shape, scale it to the total
+            s_ = float(new[mov].sum())
+            if abs(s_) <= 1e-12 or abs(total / s_ - 1.0) > max_shift:
+                continue
+            new[mov] *= total / s_
+        elif rho0 is not None and abs(rho - rho0) > max_shift * abs(rho0):
+            continue
+        out[g0:g1] = new
+    return out
