@@ -297,7 +297,9 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             if bound is not None:
                 # with the pin repair those moves are pinned (the plan, sample by sample): no blend
                 w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair,
-                                      z_limited=zlim.limited if zlim is not None else None)
+                                      z_limited=zlim.limited if zlim is not None else None,
+                                      k_plan=meta.get("k"), dt_s=dt,
+                                      new_stream=bool(k_written) and np.max(np.abs(qc[0] - last_qc)) > JUMP_M)
                 dense = (w > 0) | (wz > 0)
                 if dense.any():
                     xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
