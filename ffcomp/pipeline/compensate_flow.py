@@ -284,6 +284,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 raise SelfCheckError(f"compensated carriage command at sample {k_written + bad} has no "
                                      f"nozzle position (carriages {qc[bad] * 1e3} mm)")
             fix = np.zeros(len(xyz), bool)
+            new_stream = bool(k_written) and np.max(np.abs(qc[0] - last_qc)) > JUMP_M  # a homing jump
             if opts.z_mode in ("hold", "auto"):
                 hold = (z_held if opts.z_mode == "hold" else z_moving)(meta["move_index"], moves)
                 if opts.z_mode == "auto":
@@ -298,8 +299,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 # with the pin repair those moves are pinned (the plan, sample by sample): no blend
                 w, wz = bound.weights(meta["move_index"], moves, blend_moves=not opts.pin_repair,
                                       z_limited=zlim.limited if zlim is not None else None,
-                                      k_plan=meta.get("k"), dt_s=dt,
-                                      new_stream=bool(k_written) and np.max(np.abs(qc[0] - last_qc)) > JUMP_M)
+                                      k_plan=meta.get("k"), dt_s=dt, new_stream=new_stream)
                 dense = (w > 0) | (wz > 0)
                 if dense.any():
                     xyz[dense] += w[dense, None] * (meta["xyz"][dense] - xyz[dense])
@@ -307,7 +307,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                     fix |= dense
                     summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
             if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
-                zd, snapped, shift = zlim.dense(meta["move_index"], moves, xyz)
+                zd, snapped, shift = zlim.dense(meta["move_index"], moves, xyz, k_plan=meta.get("k"), dt_s=dt,
+                                                new_stream=new_stream)
                 dense = zd if dense is None else (dense | zd)
                 fix |= snapped
             # the firmware refuses positions outside its limits: a correction that pokes past
@@ -322,7 +323,6 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             summ.max_correction_um = max(summ.max_correction_um,
                                          float(np.max(np.abs(qc - meta["q"]))) * 1e6)
             qf.write(qc.astype(np.float32).tobytes())
-            new_stream = k_written and np.max(np.abs(qc[0] - last_qc)) > JUMP_M
             if new_stream or not k_written:  # the machine stands where the plan starts the stream
                 writer.last_pt = None
                 writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)

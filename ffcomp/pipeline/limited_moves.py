@@ -193,6 +193,7 @@ class ZLimited:
         self.lim, self.factor = lim, factor
         self.cache: dict[int, bool] = {}
         self.last = None  # the last sample seen (m)
+        self.since: int | None = None  # samples from the last limited sample to the last chunk's end
 
     def limited(self, mv) -> bool:
         b = self.cache.get(mv.index)
@@ -208,7 +209,8 @@ class ZLimited:
         return b
 
     def dense(self, move_index: np.ndarray, moves: dict, xyz_m: np.ndarray, blend: int = 24,
-              min_step_m: float = 1.5e-6) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+              min_step_m: float = 1.5e-6, k_plan: np.ndarray | None = None, dt_s: float | None = None,
+              new_stream: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Mask of the samples written one by one, of the samples moved onto a z reversal, and
         the time of the reversal (samples after the sample moved onto it; None if none moved).
 
@@ -223,7 +225,15 @@ class ZLimited:
         sample's time would leave the segments either side up to half a sample early and late).
         ``xyz_m``: (n, 3) the command, m.
         """
-        m = LimitBound._blend(moves_where(move_index, moves, self.limited), blend) > 0
+        if new_stream:
+            self.since = None
+        lm = moves_where(move_index, moves, self.limited)
+        on = np.nonzero(lm)[0]
+        prev, n = self.since, len(lm)
+        self.since = (n - 1 - int(on[-1])) if on.size else (None if prev is None else prev + n)
+        # (the blend runs on across chunk boundaries, as in LimitBound.weights)
+        m = LimitBound._blend(lm, blend, prev, LimitBound._ahead(move_index, moves, self.limited, blend,
+                                                                 k_plan, dt_s)) > 0
         prev = xyz_m[:1] if self.last is None else self.last[None]
         snapped = np.zeros(len(xyz_m), bool)
         shift = None
