@@ -129,9 +129,15 @@ def test_ratio_steps_stay_within_the_extruder_junction_limit():
     assert out[10:].sum() == pytest.approx(e[10:].sum(), rel=1e-12)
     np.testing.assert_array_equal(out[:10], e[:10])
     assert abs(r[-1] / 0.1 - 1) < 0.1 and np.ptp(r[-50:]) < 1e-12
-    # capped (a retracting or z-only extruding move): untouched
+    # capped (a retracting or z-only extruding move): untouched, unless the extruder's caps at the new
+    # ratios stay clear of the segments' speed and acceleration
     edge = np.r_[np.zeros(10, bool), True, True, np.zeros(n - 12, bool)]
-    np.testing.assert_array_equal(limit_ratio_steps(plain, d, v, grp, hold, edge, 1.0, capped=np.ones(n, bool)), plain)
+    cap = np.ones(n, bool)
+    np.testing.assert_array_equal(limit_ratio_steps(plain, d, v, grp, hold, edge, 1.0, capped=cap), plain)
+    np.testing.assert_array_equal(limit_ratio_steps(plain, d, v, grp, hold, edge, 1.0, capped=cap,
+                                                    e_limits=(20.0, 3000.0)), plain)  # 0.1 * 2 * 150 > 20
+    np.testing.assert_array_equal(limit_ratio_steps(plain, d, v, grp, hold, edge, 1.0, capped=cap,
+                                                    e_limits=(120.0, 3000.0)), out)
     # a short group whose ramp would move its even ratio by more than 10 %: untouched
     m = 30
     np.testing.assert_array_equal(by_length(e[:m], d[:m], grp[:m], hold[:m], speed_mm_s=v[:m], icv_mm_s=1.0),

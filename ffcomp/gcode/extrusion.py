@@ -48,7 +48,7 @@ def flow_groups(moves: list, rel_tol: float = 0.01) -> np.ndarray:
 
 def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.ndarray,
               speed_mm_s: np.ndarray | None = None, icv_mm_s: float | None = None,
-              capped: np.ndarray | None = None) -> np.ndarray:
+              capped: np.ndarray | None = None, e_limits: tuple[float, float] | None = None) -> np.ndarray:
     """Each group's extrusion shared among its segments in proportion to their written length.
 
     Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
@@ -74,7 +74,7 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     speed_mm_s, icv_mm_s : each segment's intended mean speed and the firmware's
         ``instantaneous_corner_velocity``: if given, the ratio steps at a group's start are then kept
         within the junction limit (:func:`limit_ratio_steps`)
-    capped : (n,) segments of moves the extruder's own limits cap (see :func:`limit_ratio_steps`)
+    capped, e_limits : see :func:`limit_ratio_steps`
     """
     de = np.asarray(de, float)
     if not len(de):
@@ -103,14 +103,14 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
     if speed_mm_s is not None and icv_mm_s is not None:
         out = limit_ratio_steps(out, dist_mm, np.asarray(speed_mm_s, float), g, hold, edge, float(icv_mm_s),
-                                capped=capped)
+                                capped=capped, e_limits=e_limits)
     return out
 
 
 def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray, group: np.ndarray,
                       hold: np.ndarray, edge: np.ndarray, icv_mm_s: float,
                       share: float = RATIO_STEP_SHARE, capped: np.ndarray | None = None,
-                      max_shift: float = 0.1) -> np.ndarray:
+                      max_shift: float = 0.1, e_limits: tuple[float, float] | None = None) -> np.ndarray:
     """Extrusions whose ratio changes from segment to segment no faster than the firmware's
     junction limit lets the segments keep their speed.
 
@@ -125,10 +125,13 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     group's even ratio after them, which takes up the extrusion the ramp held back (a few passes), so
     the group's total is unchanged.  The firmware stops at a hold: the ramp starts afresh after it.
     A group that ends before its ramp does is scaled to its total instead.  A group whose even ratio
-    would move by more than ``max_shift`` (relative) to take up the ramp's extrusion, or that holds
-    segments the extruder's own limits cap (``capped``: extruding without XY travel, or retracting:
-    Klipper caps those at ``max_extrude_only_velocity / |r|``, so a higher ratio runs slower), keeps
-    :func:`by_length`'s values.
+    would move by more than ``max_shift`` (relative) to take up the ramp's extrusion keeps
+    :func:`by_length`'s values; so does a group holding segments the extruder's own limits cap
+    (``capped``: extruding without XY travel, or retracting: Klipper caps those at
+    ``max_extrude_only_velocity / |r|`` and ``max_extrude_only_accel / |r|``, so a higher ratio may
+    run slower), unless ``e_limits`` = (``max_extrude_only_velocity``, ``max_extrude_only_accel``)
+    shows those caps stay above twice each capped segment's speed and acceleration (estimated from
+    the speed changes to its neighbours) at the new ratios.
 
     Parameters
     ----------
@@ -140,6 +143,7 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     share : see :data:`RATIO_STEP_SHARE`
     capped : (n,) bool, optional
     max_shift : largest relative change of a group's even ratio
+    e_limits : (mm/s, mm/s^2), optional
     """
     n = len(e)
     if n < 2 or icv_mm_s <= 0:
@@ -154,7 +158,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     out = e.copy()
     starts = np.nonzero(np.r_[True, group[1:] != group[:-1]])[0]
     for g0, g1 in zip(starts.tolist(), np.r_[starts[1:], n].tolist()):
-        if not bad[max(g0 - 1, 0):g1 - 1].any() or (capped is not None and capped[g0:g1].any()):
+        cap_g = capped is not None and bool(capped[g0:g1].any())
+        if not bad[max(g0 - 1, 0):g1 - 1].any() or (cap_g and e_limits is None):
             continue
         seg = np.arange(g0, g1)
         mov = ok[g0:g1]
@@ -203,5 +208,16 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
             new[mov] *= total / s_
         elif rho0 is not None and abs(rho - rho0) > max_shift * abs(rho0):
             continue
+        if cap_g:  # the extruder's caps at the new ratios must stay clear of the segments' motion
+            c_ = capped[g0:g1] & mov
+            rn = np.abs(new[c_]) / dist_mm[g0:g1][c_]
+            vmax, amax = e_limits
+            # each segment's acceleration, from the speed change to its neighbours over their times
+            vg = v[g0:g1]
+            tg = dist_mm[g0:g1] / np.maximum(vg, 1e-9)
+            dv = np.abs(np.diff(vg)) / np.maximum(0.5 * (tg[1:] + tg[:-1]), 1e-9)
+            acc = np.maximum(np.r_[0.0, dv], np.r_[dv, 0.0])
+            if np.any(rn * 2.0 * vg[c_] > vmax) or np.any(rn * 2.0 * acc[c_] > amax):
+                continue
         out[g0:g1] = new
     return out

@@ -446,7 +446,9 @@ class GcodeWriter:
         de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
                                            hold, speed_mm_s=dist / dt,
                                            icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None,
-                                           capped=np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]),
+                                           capped=np.array([extruder_capped(runs[q].move) for q in run_ids])[srun],
+                                           e_limits=None if self.chain is None else
+                                           (self.chain.max_e_velocity, self.chain.max_e_accel)),
                              run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
         fixed_v = None
