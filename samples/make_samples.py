@@ -777,6 +777,15 @@ PRUSA_JOBS = {
             " --bottom-solid-layers 3 --fill-density 15% --fill-pattern rectilinear"
         ),
     ),
+    # the cube again with "wipe while retracting": the nozzle moves back along the last perimeter
+    # while it retracts (retracting XY moves, which Klipper caps by the extruder's limits)
+    "cube_wipe_prusa": (
+        "cube20",
+        _opts(
+            "--layer-height 0.3 --first-layer-height 0.3 --perimeters 2 --top-solid-layers 3"
+            " --bottom-solid-layers 3 --fill-density 15% --fill-pattern rectilinear --wipe"
+        ),
+    ),
     "ringing_tower_prusa": (
         "ringing_tower_6mm",
         _opts("--layer-height 0.3 --first-layer-height 0.3 --perimeters 2 --fill-density 0%"),
