@@ -170,7 +170,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
         new = out[g0:g1].copy()
         for _ in range(4):
             new = out[g0:g1].copy()
-            rp = r[g0 - 1] if g0 > 0 and ok[g0 - 1] else None
+            # (the group before as written: the ramp may have changed it)
+            rp = out[g0 - 1] / dist_mm[g0 - 1] if g0 > 0 and ok[g0 - 1] else None
             reached = None
             for q, idx in enumerate(seg.tolist()):
                 if not ok[idx]:
