@@ -48,6 +48,25 @@ def test_a_run_ends_on_the_rest_point_at_the_plans_time():
     assert rest_end(DT, 100, b, X2, mv, k, off, None)[3] == 0
 
 
+def test_a_rest_reached_before_the_runs_last_sample_takes_the_plans_time():
+    """The plan comes to rest between the run's last two samples and the last sample stands on the
+    rest point: that point takes the plan's rest time (the writer then drops the sample before it
+    where it lies within a micrometre, instead of a hold that stopped the firmware a sample early)."""
+    mv = _z_move()
+    k = np.arange(0, 25)
+    X = np.zeros((len(k), 3))
+    X[:, 2] = _z_at(mv, k * DT)
+    b = int(np.ceil(mv.t_end_s / DT)) + 1  # one sample past the rest: the last sample is the rest point
+    on = np.ones(len(k), bool)
+    pt, k_end, e, appended = rest_end(DT, 100, b, X, mv, k, on, None)
+    assert k_end == pytest.approx(mv.t_end_s / DT + 100, abs=1e-9) and k_end < 100 + b - 1 and appended == 0
+    np.testing.assert_allclose(pt, mv.end_mm[:3])
+    off = on.copy()
+    off[b - 1] = False
+    assert rest_end(DT, 100, b, X, mv, k, off, None) is None  # a free command: not the plan's point
+    assert rest_end(DT, 100, b + 1, X, mv, k, on, None) is None  # the rest two samples back: none
+
+
 def test_a_run_leaves_rest_at_the_plans_time():
     mv = _z_move(t0=0.0046)
     k = np.arange(0, 25)

@@ -385,3 +385,19 @@ def test_a_run_leaving_rest_is_not_held_by_a_micrometre_of_settling(tmp_path, pr
     s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
                         CompensateOptions(predict=False, self_check_drift_ms=1e9))
     assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 1.85 ms before
+
+
+def test_a_z_move_that_extrudes_ends_on_the_plans_rest(tmp_path):
+    """A random file on other_delta: a z move that extrudes, the last in the file, comes to rest
+    between two samples 0.9 um short of its last sample; the segment to it became a hold (an
+    extruder-only line), so the firmware stopped a sample early where the plan still moved at
+    2 mm/s, braking at ``max_z_accel``: 1.0 ms late.  Now the rest point takes the plan's rest time
+    and the sample before it is dropped (``plan_clock.rest_end``, the writer's end merge)."""
+    text = ("G90\nM83\nG1 X13.639 Y5.822 Z4.246 F14210\nG1 E0.8 F2100\nG1 X-0.225 Y-21.444 E-0.4472 F1958\n"
+            "G1 Z8.234 F12233\nG1 Z9.935 F3929\nG1 Z12.876 E0.1345 F3745\nG1 X-32.583 Y-8.885 Z15.159 F11823\n"
+            "G1 Z16.831 E1.2811 F6464\n")
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
+                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
+    assert abs(s.self_check_drift_ms) < 0.85, s.self_check_drift_ms  # 1.00 ms before

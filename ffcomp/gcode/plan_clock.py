@@ -44,10 +44,16 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
         return None
     k_last = k0 + b - 1
     k_end = mv.t_end_s / dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
-    if not (k_last < k_end - 1e-6 and k_end <= k_last + 1 + 1e-9):
-        return None
     end = np.array(mv.end_mm[:3], float)
     far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
+    if (k_last - 1 + 1e-6 < k_end <= k_last - 1e-6 and not far and on_plan[b - 1] and b >= 2
+            and mv.end_v_mm_s <= 1e-9):
+        # the plan came to rest before the last sample, which stands on the rest point: that
+        # point takes the plan's rest time (the writer then drops the sample before it where it
+        # lies within a micrometre: a hold there would make the firmware stop a sample early)
+        return end, k_end, float(mv.end_mm[3]), 0
+    if not (k_last < k_end - 1e-6 and k_end <= k_last + 1 + 1e-9):
+        return None
     # an appended point is the plan's: the samples either side must be on the plan too (a
     # free command after it would have to jump from the plan's point to its own)
     if far and not on_plan[b - 1]:

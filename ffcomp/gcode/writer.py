@@ -439,14 +439,24 @@ class GcodeWriter:
         # next segment leaves rest from the lead at the lead's time (as a hold, the firmware stood
         # still for it and then had a whole sample less for the distance: 0.99 ms late for the 3.6 s
         # descent after a homing on other_delta, whose plan ramps at max_z_accel with no slack)
+        # The same at a run's end on the plan's rest point (plan_clock.rest_end): a last segment
+        # under a micrometre became a hold, and the firmware stopped at the last sample, where the
+        # plan still moves; that sample is not a point, the segment before ends at the rest point.
         nxt_same = np.r_[srun[1:] == srun[:-1], False]
+        prv_same = np.r_[False, srun[1:] == srun[:-1]]
         merge = first_seg & hold & np.asarray(went, bool)[srun] & nxt_same & ~np.r_[hold[1:], False]
-        if merge.any():
+        rests = np.array([e is not None for e in run_ends], bool)
+        merge_end = hold & ~nxt_same & rests[srun] & prv_same & ~np.r_[False, hold[:-1]] & ~merge
+        merge_end[1:] &= ~merge[:-1]
+        if merge.any() or merge_end.any():
             m_ = np.nonzero(merge)[0]
+            e_ = np.nonzero(merge_end)[0]
             j = j.copy()
             j[m_] = j[m_ + 1]
+            j[e_ - 1] = j[e_]
             keep_seg = np.ones(len(i), bool)
             keep_seg[m_ + 1] = False
+            keep_seg[e_] = False
             i, j = i[keep_seg], j[keep_seg]
             dt = (K[j] - K[i]) * self.dt
             srun = run_of[i]
