@@ -401,3 +401,17 @@ def test_a_z_move_that_extrudes_ends_on_the_plans_rest(tmp_path):
     s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
                         CompensateOptions(predict=False, self_check_drift_ms=1e9))
     assert abs(s.self_check_drift_ms) < 0.85, s.self_check_drift_ms  # 1.00 ms before
+
+
+def test_a_run_that_leaves_rest_after_the_pre_roll_waits_for_the_plan(tmp_path):
+    """A random file on other_delta whose first move (a z move that extrudes, at max_z_accel) leaves
+    rest a sample after the stream's pre-roll ends: the firmware went on at once and the whole file
+    ran 1.05-1.19 ms early (the plan leaves no slack to lose it).  It now waits there (a ``G4``)."""
+    text = ("G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"
+            "G1 X-13.002 Y-36.669 Z9.571 E-0.7220 F12508\nG1 X-28.061 Y-23.697 Z11.932 E0.6920 F5775\n"
+            "G1 Z15.922 E1.4386 F6307\n")
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
+                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
+    assert abs(s.self_check_drift_ms) < 0.6 and abs(s.self_check_drift_end_ms) < 0.2, s.self_check_drift_ms

@@ -480,6 +480,13 @@ class GcodeWriter:
                                            (self.chain.max_e_velocity, self.chain.max_e_accel)),
                              run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
+        if self.chain is not None:
+            # a run that leaves rest on the plan's time a sample or more after the writer's last point
+            # (the stream's pre-roll ends a sample before the plan's first move): the firmware would
+            # go on at once, a sample early for the rest of the file where the plan leaves no slack
+            # (a move at max_z_accel); it waits there (a G4, feed_solve's wait_out) from rest
+            ahead = first_seg & np.asarray(went, bool)[srun] & (run_pre[run_ids[srun]] < -0.5 * self.dt)
+            stop_first = stop_first | ahead
         fixed_v = None
         if self.chain is not None and on_plan is not None and k_plan is not None:
             fixed_v, plan_acc = plan_speeds(self.dt, k0, [runs[q].move for q in run_ids.tolist()], a_s, offs,
