@@ -341,6 +341,15 @@ def test_the_timing_state_carries_dwells_and_feeds_as_written(profile):
     assert fs.dwell_as_written(1.2345678e-3) == pytest.approx(1.235e-3, abs=1e-15)
 
 
+def _random_file_drift(tmp_path, text: str, profile) -> tuple[float, float]:
+    """Largest and final drift (ms) of a small file's compensated output (self-check limits lifted)."""
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
+                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
+    return s.self_check_drift_ms, s.self_check_drift_end_ms
+
+
 def test_z_follows_the_plan_through_z_limited_moves_after_a_retraction(tmp_path):
     """A retraction, an XYZ travel (its z follows the plan: it comes right after the hold), then a
     z-only move the firmware's ``max_z_accel`` binds (other_delta: 3000, the plan already at it).
@@ -349,11 +358,8 @@ def test_z_follows_the_plan_through_z_limited_moves_after_a_retraction(tmp_path)
     the limited move and the blend falls in the move after it (``LimitBound.z_follows_plan``)."""
     text = ("G90\nM83\nG28\nG1 X-14.444 Y31.299 Z3.170 F4375\nG1 E-0.8 F2100\nG1 X10.436 Y-25.773 Z7.891 F5990\n"
             "G1 Z9.204 F3046\nG1 X18.551 Y-30.693 E0.2899 F2234\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
-    assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 1.81 ms before
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, load_profile(OTHER))
+    assert abs(drift_ms) < 1.0, drift_ms  # 1.81 ms before
 
 
 def test_a_fast_change_of_extrusion_ratio_keeps_the_clock(tmp_path, profile):
@@ -364,11 +370,8 @@ def test_a_fast_change_of_extrusion_ratio_keeps_the_clock(tmp_path, profile):
     text = ("G90\nM83\nG28\nG1 X2.025 Y2.245 Z3.942 F9919\nG1 X0.553 Y-0.010 Z6.080 E-0.3736 F4822\n"
             "G1 Z6.428 F5432\nG1 X3.827 Y8.539 Z9.864 E1.3579 F14865\nG1 X-0.261 Y-2.770 E1.5839 F5303\n"
             "G1 X22.062 Y13.429 Z12.976 F4100\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
-    assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 3.33 ms before
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, profile)
+    assert abs(drift_ms) < 1.0, drift_ms  # 3.33 ms before
 
 
 def test_a_run_leaving_rest_is_not_held_by_a_micrometre_of_settling(tmp_path, profile):
@@ -380,11 +383,8 @@ def test_a_run_leaving_rest_is_not_held_by_a_micrometre_of_settling(tmp_path, pr
     text = ("G90\nM83\nG1 X17.178 Y-32.867 Z4.346 F14321\nG1 Z5.121 F9641\nG1 E-0.8 F2100\nG1 Z6.624 F4114\n"
             "G1 Z10.041 F11963\nG1 Z10.406 E0.1665 F11351\nG1 E-0.8 F2100\nG1 Z10.701 E1.2807 F11809\n"
             "G1 Z13.799 E-0.5914 F4281\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
-    assert abs(s.self_check_drift_ms) < 1.0, s.self_check_drift_ms  # 1.85 ms before
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, profile)
+    assert abs(drift_ms) < 1.0, drift_ms  # 1.85 ms before
 
 
 def test_a_z_move_that_extrudes_ends_on_the_plans_rest(tmp_path):
@@ -396,11 +396,8 @@ def test_a_z_move_that_extrudes_ends_on_the_plans_rest(tmp_path):
     text = ("G90\nM83\nG1 X13.639 Y5.822 Z4.246 F14210\nG1 E0.8 F2100\nG1 X-0.225 Y-21.444 E-0.4472 F1958\n"
             "G1 Z8.234 F12233\nG1 Z9.935 F3929\nG1 Z12.876 E0.1345 F3745\nG1 X-32.583 Y-8.885 Z15.159 F11823\n"
             "G1 Z16.831 E1.2811 F6464\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
-    assert abs(s.self_check_drift_ms) < 0.85, s.self_check_drift_ms  # 1.00 ms before
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, load_profile(OTHER))
+    assert abs(drift_ms) < 0.85, drift_ms  # 1.00 ms before
 
 
 def test_a_run_that_leaves_rest_after_the_pre_roll_waits_for_the_plan(tmp_path):
@@ -410,8 +407,5 @@ def test_a_run_that_leaves_rest_after_the_pre_roll_waits_for_the_plan(tmp_path):
     text = ("G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"
             "G1 X-13.002 Y-36.669 Z9.571 E-0.7220 F12508\nG1 X-28.061 Y-23.697 Z11.932 E0.6920 F5775\n"
             "G1 Z15.922 E1.4386 F6307\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
-    assert abs(s.self_check_drift_ms) < 0.6 and abs(s.self_check_drift_end_ms) < 0.2, s.self_check_drift_ms
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, load_profile(OTHER))
+    assert abs(drift_ms) < 0.6 and abs(end_ms) < 0.2, drift_ms
