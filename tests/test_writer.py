@@ -226,3 +226,24 @@ def test_ratio_steps_keep_totals_holds_and_the_limit(seed):
             # (within 20 %: a ramp that outlasts its group is scaled by up to 10 % to keep the total,
             # and the hand-over to the group's even ratio may add a tenth of the limit)
             assert step <= 1.2 * RATIO_STEP_SHARE / max(v[a], v[b]) + 1e-12, (a, step)
+
+
+def test_rest_holds_merge_into_their_neighbours():
+    """A run's first segment that leaves rest on the plan's time and became a hold, and a run's last
+    segment on the plan's rest point that became a hold, are merged into the segment next to them;
+    other holds (mid-run, a run without either flag) stay."""
+    from ffcomp.gcode.holds import merged_rest_holds
+
+    i = np.arange(8)
+    j = i + 1
+    srun = np.array([0, 0, 0, 0, 1, 1, 1, 1])
+    first = np.r_[True, False, False, False, True, False, False, False]
+    hold = np.array([True, False, True, True, False, False, False, True])
+    leaves = np.r_[np.ones(4, bool), np.zeros(4, bool)]
+    rests = np.r_[np.zeros(4, bool), np.ones(4, bool)]
+    i2, j2 = merged_rest_holds(i, j, srun, first, hold, leaves, rests)
+    # run 0: its first hold merges forward (0 -> 2); its last hold follows a hold: stays.
+    # run 1: its last hold merges back (6 -> 8)
+    np.testing.assert_array_equal(i2, [0, 2, 3, 4, 5, 6])
+    np.testing.assert_array_equal(j2, [2, 3, 4, 5, 6, 8])
+    assert merged_rest_holds(i, j, srun, first, hold, np.zeros(8, bool), np.zeros(8, bool)) is None

@@ -3,7 +3,9 @@
 * :func:`settle_holds`: segments under a micrometre (the firmware would crawl), and the cascade of
   start points they move;
 * :func:`unrunnable_rests`: short moves from rest to rest that the firmware cannot run in their
-  time (the settling after a pinned z move), within the point tolerance.
+  time (the settling after a pinned z move), within the point tolerance;
+* :func:`merged_rest_holds`: the settled holds where a run leaves or comes to rest on the plan's
+  time, merged into the segment next to them.
 
 Pure numeric kernels on the writer's points (no I/O), called by :class:`~ffcomp.gcode.writer.GcodeWriter`.
 """
@@ -14,7 +16,7 @@ import numpy as np
 
 from .chain_plan import ChainLimits, segment_limits
 
-__all__ = ["settle_holds", "unrunnable_rests"]
+__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds"]
 
 
 def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
@@ -90,3 +92,37 @@ def settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.nda
     d = Pr[j] - Pr[i]
     dist = np.sqrt(np.einsum("ij,ij->i", d, d))
     return Pr, d, dist, (dist < 1e-3) if force is None else (dist < 1e-3) | force
+
+
+def merged_rest_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, first_seg: np.ndarray, hold: np.ndarray,
+                      leaves: np.ndarray, rests: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Segments ``i -> j`` (point indices) with the holds the settling made at a run's ends merged
+    into their neighbour, or None where there are none.
+
+    * A run's first segment that leaves rest on the plan's time (``leaves``) and that became a hold
+      (the nozzle rests up to a micrometre off the run's lead point): its end is not a point, the
+      next segment leaves rest from the lead at the lead's time.  As a hold, the firmware stood
+      still for it and then had a whole sample less for the next distance: 0.99 ms late for the
+      3.6 s descent after a homing on other_delta, whose plan ramps at ``max_z_accel``.
+    * A run's last segment that ends on the plan's rest point (``rests``,
+      :func:`~ffcomp.gcode.plan_clock.rest_end`) and became a hold: the firmware stopped at the
+      last sample, where the plan still moves; that sample is not a point, the segment before ends
+      at the rest point at its time.
+
+    ``srun``, ``first_seg``, ``hold``, ``leaves``, ``rests``: per segment.
+    """
+    nxt_same = np.r_[srun[1:] == srun[:-1], False]
+    prv_same = np.r_[False, srun[1:] == srun[:-1]]
+    first = first_seg & hold & leaves & nxt_same & ~np.r_[hold[1:], False]
+    end = hold & ~nxt_same & rests & prv_same & ~np.r_[False, hold[:-1]] & ~first
+    end[1:] &= ~first[:-1]
+    if not (first.any() or end.any()):
+        return None
+    m_, e_ = np.nonzero(first)[0], np.nonzero(end)[0]
+    j = j.copy()
+    j[m_] = j[m_ + 1]
+    j[e_ - 1] = j[e_]
+    keep = np.ones(len(i), bool)
+    keep[m_ + 1] = False
+    keep[e_] = False
+    return i[keep], j[keep]

@@ -45,7 +45,7 @@ from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
-from .holds import settle_holds, unrunnable_rests
+from .holds import merged_rest_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .plan_clock import plan_speeds, rest_end, rest_start
@@ -429,40 +429,23 @@ class GcodeWriter:
         dt = (K[j] - K[i]) * self.dt
         ok = dt > 0
         i, j, dt = i[ok], j[ok], dt[ok]
-        srun = run_of[i]  # motion run of each segment
-        # the firmware sees the printed (rounded) coordinates: durations must come from those
-        Pr = np.round(P, 4)
-        first_seg = np.concatenate(([True], srun[1:] != srun[:-1]))
-        Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last)
-        # a run's first segment that leaves rest on the plan's time and that the settling made a hold
-        # (the nozzle rests up to a micrometre off the run's lead point): its end is not a point, the
-        # next segment leaves rest from the lead at the lead's time (as a hold, the firmware stood
-        # still for it and then had a whole sample less for the distance: 0.99 ms late for the 3.6 s
-        # descent after a homing on other_delta, whose plan ramps at max_z_accel with no slack)
-        # The same at a run's end on the plan's rest point (plan_clock.rest_end): a last segment
-        # under a micrometre became a hold, and the firmware stopped at the last sample, where the
-        # plan still moves; that sample is not a point, the segment before ends at the rest point.
-        nxt_same = np.r_[srun[1:] == srun[:-1], False]
-        prv_same = np.r_[False, srun[1:] == srun[:-1]]
-        merge = first_seg & hold & np.asarray(went, bool)[srun] & nxt_same & ~np.r_[hold[1:], False]
-        rests = np.array([e is not None for e in run_ends], bool)
-        merge_end = hold & ~nxt_same & rests[srun] & prv_same & ~np.r_[False, hold[:-1]] & ~merge
-        merge_end[1:] &= ~merge[:-1]
-        if merge.any() or merge_end.any():
-            m_ = np.nonzero(merge)[0]
-            e_ = np.nonzero(merge_end)[0]
-            j = j.copy()
-            j[m_] = j[m_ + 1]
-            j[e_ - 1] = j[e_]
-            keep_seg = np.ones(len(i), bool)
-            keep_seg[m_ + 1] = False
-            keep_seg[e_] = False
-            i, j = i[keep_seg], j[keep_seg]
-            dt = (K[j] - K[i]) * self.dt
-            srun = run_of[i]
-            Pr = np.round(P, 4)
+
+        def settled(i, j):
+            """Each segment's run, first-of-run flag and the printed points, settled (holds)."""
+            srun = run_of[i]  # motion run of each segment
             first_seg = np.concatenate(([True], srun[1:] != srun[:-1]))
-            Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last)
+            # the firmware sees the printed (rounded) coordinates: durations must come from those
+            return (srun, first_seg, *settle_holds(np.round(P, 4), i, j, first_seg, offs, last))
+
+        srun, first_seg, Pr, d, dist, hold = settled(i, j)
+        # sub-micrometre holds where a run leaves or comes to rest on the plan's time (see
+        # holds.merged_rest_holds): those points go, the segments next to them span their time
+        merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(went, bool)[srun],
+                                   np.array([e is not None for e in run_ends], bool)[srun])
+        if merged is not None:
+            i, j = merged
+            dt = (K[j] - K[i]) * self.dt
+            srun, first_seg, Pr, d, dist, hold = settled(i, j)
         if self.chain is not None:  # (a hold moves the next segment's start: a few passes)
             micro = np.zeros(len(i), bool)
             for _ in range(3):

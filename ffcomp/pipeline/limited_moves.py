@@ -150,10 +150,8 @@ class LimitBound:
 
     def _blend_on(self, m: np.ndarray, blend: int, key: str, ahead: int | None) -> np.ndarray:
         """:meth:`_blend` of a chunk with the stream's state (see :meth:`weights`)."""
-        n = len(m)
         prev = self.since.get(key)
-        on = np.nonzero(m)[0]
-        self.since[key] = (n - 1 - int(on[-1])) if on.size else (None if prev is None else prev + n)
+        self.since[key] = _since_after(prev, m)
         return self._blend(m, blend, prev, ahead)
 
     @staticmethod
@@ -228,9 +226,7 @@ class ZLimited:
         if new_stream:
             self.since = None
         lm = moves_where(move_index, moves, self.limited)
-        on = np.nonzero(lm)[0]
-        prev, n = self.since, len(lm)
-        self.since = (n - 1 - int(on[-1])) if on.size else (None if prev is None else prev + n)
+        prev, self.since = self.since, _since_after(self.since, lm)
         # (the blend runs on across chunk boundaries, as in LimitBound.weights)
         m = LimitBound._blend(lm, blend, prev, LimitBound._ahead(move_index, moves, self.limited, blend,
                                                                  k_plan, dt_s)) > 0
@@ -262,6 +258,13 @@ class ZLimited:
         close = np.nonzero(snapped[1:] & (step[1:] < min_step_m))[0]
         keep[close] = False
         return keep, snapped, shift
+
+
+def _since_after(prev: int | None, m: np.ndarray) -> int | None:
+    """Samples from the last masked sample to the end of chunk ``m`` (a mask), given ``prev``, the
+    same count at the end of the chunk before (None: no masked sample yet)."""
+    on = np.nonzero(m)[0]
+    return (len(m) - 1 - int(on[-1])) if on.size else (None if prev is None else prev + len(m))
 
 
 class _NoAccel:
