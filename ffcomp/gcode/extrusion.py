@@ -168,6 +168,7 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
         rho = float(r[g0:g1][free][0]) if free.any() else None  # the group's even ratio (by_length)
         rho0 = rho
         new = out[g0:g1].copy()
+        settled = False  # the hand-over from the ramp to the group's even ratio within the limit
         for _ in range(4):
             new = out[g0:g1].copy()
             # (the group before as written: the ramp may have changed it)
@@ -200,6 +201,7 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
             rho_new = rest / d_after
             new[after] = rho_new * dist_mm[g0:g1][after]
             if abs(rho_new - rho) <= 0.1 * lim[g0 + reached]:  # (the step there stays within the limit)
+                settled = True
                 break
             rho = rho_new
         if reached is None:  # the ramp outlasts the group: keep its shape, scale it to the total
@@ -207,8 +209,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
             if abs(s_) <= 1e-12 or abs(total / s_ - 1.0) > max_shift:
                 continue
             new[mov] *= total / s_
-        elif rho0 is not None and abs(rho - rho0) > max_shift * abs(rho0):
-            continue
+        elif not settled or (rho0 is not None and abs(rho - rho0) > max_shift * abs(rho0)):
+            continue  # (the passes did not settle: a step at the hand-over would break the limit)
         if cap_g:  # the extruder's caps at the new ratios must stay clear of the segments' motion
             c_ = capped[g0:g1] & mov
             rn = np.abs(new[c_]) / dist_mm[g0:g1][c_]

@@ -54,6 +54,10 @@ from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
 
+#: a run's first point this close to its lead point (mm) is dropped where the run leaves rest on the
+#: plan's time (holds.merged_rest_holds)
+NEAR_LEAD_MM = 2e-3
+
 #: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
 EXTRUDE_SPARE_S = 3e-3
 
@@ -269,7 +273,7 @@ class GcodeWriter:
                 self._start_travel(xyz_mm[0])
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
-                if chunk.run_wait[r] > 0:  # the firmware stands still: the plan leaves rest later
+                if chunk.run_wait[r] > 0 or chunk.run_stop[r]:  # the firmware stands still: the plan leaves rest later
                     self._w(f"G4 P{chunk.run_wait[r] * 1000:.3f}\n")
                 if s1 > s0:
                     seg_base.append((r, self.nlines))
@@ -322,6 +326,8 @@ class GcodeWriter:
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
         run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
         went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
+        from_rest = []  # per motion run: it leaves rest on the plan's time, or at once from a rest end
+        at_rest_end = False  # the last run ended on the plan's rest point (plan_clock.rest_end)
         last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
@@ -341,6 +347,9 @@ class GcodeWriter:
                 # a move that starts from rest between two samples starts on the plan's time
                 k_go = rest_start(self.dt, k0, a, mv, k_plan, on_plan, last_pt, last_k)
                 went.append(k_go != last_k)
+                # it leaves from rest on the plan's time too where the run before it ended on the
+                # plan's rest point and its move starts from rest
+                from_rest.append(k_go != last_k or (at_rest_end and (mv is None or mv.start_v_mm_s <= 1e-9)))
                 run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
                 run_ids.append(r)
                 a_s.append(a)
@@ -354,10 +363,12 @@ class GcodeWriter:
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 run_ends.append(end)
+                at_rest_end = end is not None
                 if end is not None:  # the run ends where and when the plan comes to rest
                     last_pt = np.round(end[0], 4)
                     n_s[-1] += end[3]
             else:
+                at_rest_end = False
                 if kind == EXTRUDE and mv.index not in self.done_moves:
                     ext_de[r] = mv.end_mm[3] - mv.start_mm[3]
                     ext_runs.append(r)
@@ -440,8 +451,9 @@ class GcodeWriter:
         srun, first_seg, Pr, d, dist, hold = settled(i, j)
         # sub-micrometre holds where a run leaves or comes to rest on the plan's time (see
         # holds.merged_rest_holds): those points go, the segments next to them span their time
-        merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(went, bool)[srun],
-                                   np.array([e is not None for e in run_ends], bool)[srun])
+        merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(from_rest, bool)[srun],
+                                   np.array([e is not None for e in run_ends], bool)[srun],
+                                   near=dist < NEAR_LEAD_MM)
         if merged is not None:
             i, j = merged
             dt = (K[j] - K[i]) * self.dt
@@ -470,6 +482,13 @@ class GcodeWriter:
             # (a move at max_z_accel); it waits there (a G4, feed_solve's wait_out) from rest
             ahead = first_seg & np.asarray(went, bool)[srun] & (run_pre[run_ids[srun]] < -0.5 * self.dt)
             stop_first = stop_first | ahead
+            # a run that leaves rest at once where the run before it ended on the plan's rest point:
+            # the firmware stops there as the plan does (a G4 P0 flushes its look-ahead) rather than
+            # carry a micrometre's turn through at speed and brake the plan's ramp for it
+            go = first_seg & (np.asarray(from_rest, bool) & ~np.asarray(went, bool))[srun] & ~stop_first
+            for q in np.nonzero(go)[0].tolist():
+                ch.run_stop[int(run_ids[srun[q]])] = True
+            stop_first = stop_first | go
         fixed_v = None
         if self.chain is not None and on_plan is not None and k_plan is not None:
             fixed_v, plan_acc = plan_speeds(self.dt, k0, [runs[q].move for q in run_ids.tolist()], a_s, offs,
@@ -641,7 +660,7 @@ class _Run(NamedTuple):
 class _Chunk:
     """The writer's numbers for one chunk (see :meth:`GcodeWriter._plan_chunk`)."""
 
-    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run", "run_wait")
+    __slots__ = ("lines", "run_lines", "extrude_de", "extrude_v", "seg_rows", "seg_run", "run_wait", "run_stop")
 
     def __init__(self, n_runs: int):
         self.lines: list[str] = []
@@ -649,6 +668,7 @@ class _Chunk:
         self.extrude_de = [0.0] * n_runs
         self.extrude_v = [0.0] * n_runs  # feed of an extruder-only move written faster (0: as planned)
         self.run_wait = [0.0] * n_runs  # a G4 before a motion run that leaves rest ahead of the clock, s
+        self.run_stop = [False] * n_runs  # a G4 (at least P0) before a motion run: it leaves from a stop
         self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
 
