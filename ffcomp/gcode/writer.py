@@ -273,7 +273,8 @@ class GcodeWriter:
                 self._start_travel(xyz_mm[0])
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
-                if chunk.run_wait[r] > 0 or chunk.run_stop[r]:  # the firmware stands still: the plan leaves rest later
+                # the firmware stands still (the plan leaves rest later), or stops on the rest point
+                if chunk.run_wait[r] > 0 or chunk.run_stop[r]:
                     self._w(f"G4 P{chunk.run_wait[r] * 1000:.3f}\n")
                 if s1 > s0:
                     seg_base.append((r, self.nlines))
@@ -449,8 +450,9 @@ class GcodeWriter:
             return (srun, first_seg, *settle_holds(np.round(P, 4), i, j, first_seg, offs, last))
 
         srun, first_seg, Pr, d, dist, hold = settled(i, j)
-        # sub-micrometre holds where a run leaves or comes to rest on the plan's time (see
-        # holds.merged_rest_holds): those points go, the segments next to them span their time
+        # sub-micrometre holds where a run leaves or comes to rest on the plan's time, and a leaving
+        # run's first point within NEAR_LEAD_MM of its lead (see holds.merged_rest_holds): those
+        # points go, the segments next to them span their time
         merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(from_rest, bool)[srun],
                                    np.array([e is not None for e in run_ends], bool)[srun],
                                    near=dist < NEAR_LEAD_MM)
