@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ffcomp.gcode.moves import PlannedMove
-from ffcomp.gcode.plan_clock import plan_speeds, rest_end, rest_start
+from ffcomp.gcode.plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
 
 DT = 1e-3
 
@@ -33,7 +33,11 @@ def test_a_run_ends_on_the_rest_point_at_the_plans_time():
     X[:, 2] = _z_at(mv, k * DT)
     b = int(np.ceil(mv.t_end_s / DT))  # samples 0 .. b-1 belong to the move
     on = np.ones(len(k), bool)
-    end = rest_end(DT, 100, b, X, mv, k, on, None)
+    # (this move's last sample is 1.3 um short of the rest point: within REST_POINT_NEAR_MM)
+    assert 1e-3 < mv.end_mm[2] - X[b - 1, 2] < REST_POINT_NEAR_MM
+    X3 = X.copy()
+    X3[b - 1, 2] = mv.end_mm[2] - 3e-3  # a last sample 3 um short: the rest point is appended
+    end = rest_end(DT, 100, b, X3, mv, k, on, None)
     assert end is not None
     pt, k_end, e, appended = end
     assert k_end == pytest.approx(mv.t_end_s / DT + 100, abs=1e-9) and appended == 1
@@ -41,11 +45,13 @@ def test_a_run_ends_on_the_rest_point_at_the_plans_time():
     # a free command (not on the plan) turns elsewhere: no point of the plan's is put there
     off = on.copy()
     off[b - 1] = False
-    assert rest_end(DT, 100, b, X, mv, k, off, None) is None
-    # the last sample within a micrometre of the rest point: that sample takes the plan's time instead
-    X2 = X.copy()
-    X2[b - 1] = mv.end_mm[:3]
-    assert rest_end(DT, 100, b, X2, mv, k, off, None)[3] == 0
+    assert rest_end(DT, 100, b, X3, mv, k, off, None) is None
+    # the last sample within REST_POINT_NEAR_MM of the rest point (the plan's own, 1.3 um short, or
+    # on it): the rest point takes that sample's place, at the plan's time (no micrometre segment)
+    for X2 in (X, np.where(np.arange(len(k))[:, None] == b - 1, np.array(mv.end_mm[:3]), X)):
+        pt, k_end, e, appended = rest_end(DT, 100, b, X2, mv, k, off, None)
+        assert appended == 0 and k_end == pytest.approx(mv.t_end_s / DT + 100, abs=1e-9)
+        np.testing.assert_allclose(pt, mv.end_mm[:3])
 
 
 def test_a_rest_reached_before_the_runs_last_sample_takes_the_plans_time():

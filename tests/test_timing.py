@@ -411,6 +411,26 @@ def test_a_run_that_leaves_rest_after_the_pre_roll_waits_for_the_plan(tmp_path):
     assert abs(drift_ms) < 0.6 and abs(end_ms) < 0.2, drift_ms
 
 
+def _late_near(tmp_path, text: str, profile, marker: str, before: int = 5, after: int = 5):
+    """Compensate ``text``; the largest lateness (s) of the re-planned segments written within
+    ``before`` / ``after`` lines of the first ``G1`` line containing ``marker``, their count and the
+    output's lines (the self-check's own measurement, through its ``TRACE`` hook)."""
+    from ffcomp.pipeline import self_check
+
+    self_check.TRACE = []
+    try:
+        _random_file_drift(tmp_path, text, profile)
+        rows = self_check.TRACE
+    finally:
+        self_check.TRACE = None
+    line = np.concatenate([r[0] for r in rows])
+    late_s = np.concatenate([r[2] for r in rows])
+    out = (tmp_path / "o.gcode").read_text().splitlines()
+    top = next(n for n, ln in enumerate(out, 1) if ln.startswith("G1") and marker in ln)
+    near = (line >= top - before) & (line <= top + after)
+    return float(np.max(np.abs(late_s[near]))), int(near.sum()), out[top - 1:]
+
+
 def test_the_settling_after_a_pinned_z_hop_leaves_the_plans_rest_on_time(tmp_path):
     """The last lap of a circle, a retraction and a pinned z-hop, then the stream's rest before a
     homing (other_delta).  The run ends on the plan's rest point at its time; the settling command
@@ -418,24 +438,25 @@ def test_the_settling_after_a_pinned_z_hop_leaves_the_plans_rest_on_time(tmp_pat
     through at speed: the hop's last segment ran 0.23 ms early (0.71 ms late on stress_circle64,
     where the settling reversed the path).  That first point now merges into the next segment,
     and a ``G4 P0`` makes the firmware stop on the rest point as the plan does."""
-    from ffcomp.pipeline import self_check
-
     pts = [(40 * np.cos(2 * np.pi * k / 64), 40 * np.sin(2 * np.pi * k / 64)) for k in range(-12, 1)]
     text = ("G90\nM83\nG28\nSET_VELOCITY_LIMIT ACCEL=10000\nM204 S10000\n"
             f"G0 X{pts[0][0]:.3f} Y{pts[0][1]:.3f} Z2 F12000\n"
             + "".join(f"G1 X{x:.3f} Y{y:.3f} E0.147 F9000\n" for x, y in pts[1:])
             + "G1 E-0.8 F2100\nG91\nG1 Z5 F1200\nG90\nM107\nG28\n")
-    self_check.TRACE = []
-    try:
-        _random_file_drift(tmp_path, text, load_profile(OTHER))
-        rows = self_check.TRACE
-    finally:
-        self_check.TRACE = None
-    line = np.concatenate([r[0] for r in rows])
-    late_s = np.concatenate([r[2] for r in rows])
-    out = (tmp_path / "o.gcode").read_text().splitlines()
-    top = next(n for n, ln in enumerate(out, 1) if ln.startswith("G1") and "Z7.0000" in ln)
-    assert any(ln.startswith("G4 P0.000") for ln in out[top - 1:])  # the stop on the rest point
-    near = (line >= top - 5) & (line <= top + 5)  # the hop's last segments and the settling after
-    assert near.sum() >= 5
-    assert np.max(np.abs(late_s[near])) < 0.1e-3, np.max(np.abs(late_s[near]))  # 0.23 ms before
+    late, n, rest = _late_near(tmp_path, text, load_profile(OTHER), "Z7.0000")
+    assert any(ln.startswith("G4 P0.000") for ln in rest)  # the stop on the rest point
+    assert n >= 5
+    assert late < 0.1e-3, late  # 0.23 ms before
+
+
+def test_a_pinned_z_hop_ends_on_the_plans_corner_without_a_micrometre_segment(tmp_path):
+    """A retraction, a pinned z-hop of 0.31 mm, then a travel (other_delta): the hop's last sample
+    falls a micrometre short of the plan's corner.  Appending the corner made a micrometre's
+    segment, which caps the firmware's junction there (the centripetal rule scales with the
+    segment's length): the hop's pinned braking ran 0.72 ms late.  The corner now takes the last
+    sample's place (``plan_clock.REST_POINT_NEAR_MM``)."""
+    text = ("G90\nM83\nG28\nG1 X10 Y-10 Z0.4 F12000\nG1 X-15 Y-10 E1.0 F3000\nG1 E-0.8 F2100\nG91\n"
+            "G1 Z0.31 F1200\nG90\nG1 X-15 Y15 F12000\nG1 E0.8 F2100\nG1 X15 Y15 E1.0 F3000\n")
+    late, n, _ = _late_near(tmp_path, text, load_profile(OTHER), "Z0.7100", before=6, after=4)
+    assert n >= 8
+    assert late < 0.5e-3, late  # 0.72 ms before

@@ -16,7 +16,13 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "plan_speeds"]
+__all__ = ["rest_end", "rest_start", "plan_speeds", "REST_POINT_NEAR_MM"]
+
+#: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
+#: than a segment of that length being appended: a micrometre's segment into a corner caps the
+#: firmware's junction there (Klipper's centripetal rule, ``0.5 d a tan(theta / 2)``), and the
+#: pinned ramp before it ran up to 0.7 ms late braking for it (relative_extrusion on other_delta)
+REST_POINT_NEAR_MM = 2e-3
 
 
 def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, k_plan: np.ndarray | None,
@@ -30,8 +36,9 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
     loss before every extruder-only move, dwell and full stop; with ``max_z_accel`` binding,
     most of a layer change's drift).  The run ends on the plan's rest point at the plan's time
     instead: a point appended after the last sample where that sample follows the plan, or,
-    where the last sample is within a micrometre of the rest point (the pin repair puts a free
-    command's last sample there), in its place (``appended`` 1 or 0).  None where the run does
+    where the last sample is within :data:`REST_POINT_NEAR_MM` of the rest point (the pin repair
+    puts a free command's last sample there; a pinned ramp's last sample can fall a micrometre or
+    two short of it), in its place (``appended`` 1 or 0).  None where the run does
     not end its move, or the command is elsewhere (a free command turns round before or after
     the plan's stop).  Where the command follows the plan up to its last sample, a move that
     ends at a corner passed at speed ends on the plan's corner at its time too (a pinned z-hop
@@ -45,7 +52,7 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
     k_last = k0 + b - 1
     k_end = mv.t_end_s / dt + (k_last - int(k_plan[b - 1]))  # on the writer's count
     end = np.array(mv.end_mm[:3], float)
-    far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= 1e-3
+    far = np.linalg.norm(np.round(end, 4) - np.round(X[b - 1], 4)) >= REST_POINT_NEAR_MM
     if (k_last - 1 + 1e-6 < k_end <= k_last - 1e-6 and not far and on_plan[b - 1] and b >= 2
             and mv.end_v_mm_s <= 1e-9):
         # the plan came to rest before the last sample, which stands on the rest point: that
