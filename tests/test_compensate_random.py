@@ -18,25 +18,40 @@ def _other():
     return _OTHER
 
 
+#: the largest extrusion per mm of an XY move Klipper accepts with a 0.4 mm nozzle and 1.75 mm
+#: filament (``max_extrude_cross_section`` defaults to 4 nozzle_diameter^2 = 0.64 mm^2: 0.266 mm/mm);
+#: beyond it Klipper refuses the move ("Move exceeds maximum extrusion"), which the planner does not
+#: model (gcode/FIRMWARE.md): such a file is not valid input (a draw of 1.41 mm/mm ran 12 ms late)
+MAX_XY_RATIO = 0.25
+
+
 @st.composite
 def small_files(draw):
     """Optionally G28, then 2-5 G1 moves inside a 60 mm radius, z 0.2-20 mm, some z-only, some
-    extruding or retracting."""
+    extruding (XY moves within Klipper's cross-section limit) or retracting."""
     lines = ["G90", "M83"] + (["G28"] if draw(st.booleans()) else [])
     n = draw(st.integers(2, 5))
     z = 0.0
+    pos = None
     for i in range(n):
         words = ["G1"]
         xy = i == 0 or draw(st.booleans())
+        new = list(pos) if pos is not None else [0.0, 0.0, 0.0]
         if xy:
             r = draw(st.floats(0, 40))
             a = draw(st.floats(0, 2 * np.pi))
             words += [f"X{r * np.cos(a):.3f}", f"Y{r * np.sin(a):.3f}"]
+            new[:2] = [round(r * np.cos(a), 3), round(r * np.sin(a), 3)]
         if i == 0 or not xy or draw(st.booleans()):  # every move names a position (the file moves)
             z = draw(st.floats(0.2, 8)) if i == 0 else z + draw(st.floats(0.2, 4))
             words.append(f"Z{z:.3f}")
+            new[2] = round(z, 3)
         if i > 0 and draw(st.booleans()):
-            words.append(f"E{draw(st.floats(-1, 2)):.4f}")
+            e = draw(st.floats(-1, 2))
+            if e > 0 and pos is not None and (new[0], new[1]) != (pos[0], pos[1]):
+                e = min(e, MAX_XY_RATIO * float(np.linalg.norm(np.subtract(new, pos))))
+            words.append(f"E{e:.4f}")
+        pos = new
         words.append(f"F{draw(st.integers(1200, 15000))}")
         if len(words) > 2:
             lines.append(" ".join(words))

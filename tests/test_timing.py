@@ -460,3 +460,16 @@ def test_a_pinned_z_hop_ends_on_the_plans_corner_without_a_micrometre_segment(tm
     late, n, _ = _late_near(tmp_path, text, load_profile(OTHER), "Z0.7100", before=6, after=4)
     assert n >= 8
     assert late < 0.5e-3, late  # 0.72 ms before
+
+
+def test_an_extruding_z_move_at_a_high_ratio_keeps_the_clock(tmp_path, profile):
+    """A hypothesis draw of the random-file self-check test (default profile): a z move of 0.219 mm
+    that extrudes 2 mm of filament (the extruder's limits set its pace).  Its first and last samples
+    move the nozzle less than a micrometre and were written as extruder-only lines; Klipper stops
+    around those, and the move could not regain the plan's pace under the extruder's limits: 11 ms
+    late.  Such holds now merge into the moving segment next to them (``holds.merged_wet_holds``)."""
+    text = "G90\nM83\nG1 X0.000 Y0.000 Z1.000 F1200\nG1 Z2.000 F1200\nG1 Z2.219 E2.0000 F1200\n"
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, profile)
+    assert abs(drift_ms) < 1.0, drift_ms  # 11.07 ms before
+    drift_ms, end_ms = _random_file_drift(tmp_path, text, load_profile(OTHER))
+    assert abs(drift_ms) < 1.0, drift_ms  # 8.29 ms before

@@ -250,6 +250,24 @@ def test_rest_holds_merge_into_their_neighbours():
     assert merged_rest_holds(i, j, srun, first, hold, np.zeros(8, bool), np.zeros(8, bool)) is None
 
 
+def test_holds_that_extrude_merge_into_a_moving_segment():
+    """Wet holds (they would be extruder-only lines, a stop of the firmware) merge into the moving
+    segment after them, at a run's end into the one before; dry holds (G4) stay."""
+    from ffcomp.gcode.holds import merged_wet_holds
+
+    i = np.arange(9)
+    j = i + 1
+    srun = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1])
+    hold = np.array([False, True, True, False, True, False, True, False, True])
+    wet = np.array([False, False, True, False, False, False, False, False, True])
+    i2, j2 = merged_wet_holds(i, j, srun, hold, wet)
+    # run 0: the group 1-2 (one wet) merges into 3 (1 -> 4); the dry hold 4 stays;
+    # run 1: the dry hold 6 stays; the wet hold 8 at the run's end merges into 7 (7 -> 9)
+    np.testing.assert_array_equal(i2, [0, 1, 4, 5, 6, 7])
+    np.testing.assert_array_equal(j2, [1, 4, 5, 6, 7, 9])
+    assert merged_wet_holds(i, j, srun, hold, np.zeros(9, bool)) is None
+
+
 def test_a_first_point_near_the_lead_merges_too():
     """A run's first segment that leaves rest and ends a micrometre or two off the lead (not a hold)
     merges forward where ``near`` says so; without ``near`` it stays."""

@@ -5,7 +5,8 @@
 * :func:`unrunnable_rests`: short moves from rest to rest that the firmware cannot run in their
   time (the settling after a pinned z move), within the point tolerance;
 * :func:`merged_rest_holds`: the settled holds where a run leaves or comes to rest on the plan's
-  time, merged into the segment next to them.
+  time, merged into the segment next to them;
+* :func:`merged_wet_holds`: holds that extrude, merged into the moving segment after them.
 
 Pure numeric kernels on the writer's points (no I/O), called by :class:`~ffcomp.gcode.writer.GcodeWriter`.
 """
@@ -16,7 +17,7 @@ import numpy as np
 
 from .chain_plan import ChainLimits, segment_limits
 
-__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds"]
+__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds", "merged_wet_holds"]
 
 
 def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
@@ -104,7 +105,10 @@ def merged_rest_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, first_seg:
       (the nozzle rests up to a micrometre off the run's lead point): its end is not a point, the
       next segment leaves rest from the lead at the lead's time.  As a hold, the firmware stood
       still for it and then had a whole sample less for the next distance: 0.99 ms late for the
-      3.6 s descent after a homing on other_delta, whose plan ramps at ``max_z_accel``.
+      3.6 s descent after a homing on other_delta, whose plan ramps at ``max_z_accel``.  (Not
+      a group of holds: where the command stands still there, ``G4`` is exact; merged, the
+      segment would creep, and the one after it leave a crawl: 0.61 -> 0.68 ms on
+      relative_extrusion.)
     * A run's last segment that ends on the plan's rest point (``rests``,
       :func:`~ffcomp.gcode.plan_clock.rest_end`) and became a hold: the firmware stopped at the
       last sample, where the plan still moves; that sample is not a point, the segment before ends
@@ -131,4 +135,44 @@ def merged_rest_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, first_seg:
     keep = np.ones(len(i), bool)
     keep[m_ + 1] = False
     keep[e_] = False
+    return i[keep], j[keep]
+
+
+def merged_wet_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, hold: np.ndarray,
+                     wet: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Segments ``i -> j`` with each group of consecutive holds that extrudes (``wet``: any of the
+    group) merged into the moving segment after it in the same run, or None where there is none.
+
+    A hold that extrudes is written as an extruder-only line, and Klipper stops before and after
+    one (its look-ahead joins no kinematic move to it): the next segment starts from rest, where
+    the plan is moving.  Where a move extrudes slowly (an extruding z move at a high ratio: its
+    first samples move the nozzle less than a micrometre) the firmware then could not reach the
+    plan's speed again under the extruder's own limits, and the output fell 8-11 ms behind.  The
+    group's points are dropped instead (the nozzle moves less than a micrometre there): the segment
+    after them spans their time and extrudes their filament too; at a run's end, the segment before
+    them.  ``srun``, ``hold``, ``wet``: per segment.
+    """
+    n = len(i)
+    if n == 0 or not (hold & wet).any():
+        return None
+    same_prev = np.r_[False, srun[1:] == srun[:-1]]
+    starts = np.nonzero(hold & ~(np.r_[False, hold[:-1]] & same_prev))[0]
+    cw = np.r_[0, np.cumsum(wet & hold)]
+    j = j.copy()
+    keep = np.ones(n, bool)
+    for g0 in starts.tolist():
+        g1 = g0
+        while g1 + 1 < n and hold[g1 + 1] and srun[g1 + 1] == srun[g0]:
+            g1 += 1
+        nx = g1 + 1
+        if cw[g1 + 1] == cw[g0]:
+            continue  # dry
+        if nx < n and srun[nx] == srun[g0]:
+            j[g0] = j[nx]
+            keep[g0 + 1:nx + 1] = False
+        elif g0 > 0 and srun[g0 - 1] == srun[g0] and keep[g0 - 1]:  # at the run's end: the one before
+            j[g0 - 1] = j[g1]
+            keep[g0:g1 + 1] = False
+    if keep.all():
+        return None
     return i[keep], j[keep]

@@ -45,7 +45,7 @@ from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
-from .holds import merged_rest_holds, settle_holds, unrunnable_rests
+from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
 from .plan_clock import plan_speeds, rest_end, rest_start
@@ -456,6 +456,13 @@ class GcodeWriter:
         merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(from_rest, bool)[srun],
                                    np.array([e is not None for e in run_ends], bool)[srun],
                                    near=dist < NEAR_LEAD_MM)
+        if merged is not None:
+            i, j = merged
+            dt = (K[j] - K[i]) * self.dt
+            srun, first_seg, Pr, d, dist, hold = settled(i, j)
+        # holds that extrude would be extruder-only lines, a stop of the firmware where the plan
+        # moves: the moving segment after them takes them over (holds.merged_wet_holds)
+        merged = merged_wet_holds(i, j, srun, hold, Ef[j] != Ef[i])
         if merged is not None:
             i, j = merged
             dt = (K[j] - K[i]) * self.dt
