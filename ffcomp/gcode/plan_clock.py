@@ -21,7 +21,8 @@ __all__ = ["rest_end", "rest_start", "plan_speeds", "REST_POINT_NEAR_MM"]
 #: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
 #: than a segment of that length being appended: a micrometre's segment into a corner caps the
 #: firmware's junction there (Klipper's centripetal rule, ``0.5 d a tan(theta / 2)``), and the
-#: pinned ramp before it ran up to 0.7 ms late braking for it (relative_extrusion on other_delta)
+#: pinned ramp before it ran up to 0.7 ms late braking for it (relative_extrusion on other_delta).
+#: The writer drops the next run's first point as close to that rest point for the same reason.
 REST_POINT_NEAR_MM = 2e-3
 
 

@@ -48,15 +48,11 @@ from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, MOVE, PlannedMove
-from .plan_clock import plan_speeds, rest_end, rest_start
+from .plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
-
-#: a run's first point this close to its lead point (mm) is dropped where the run leaves rest on the
-#: plan's time (holds.merged_rest_holds)
-NEAR_LEAD_MM = 2e-3
 
 #: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
 EXTRUDE_SPARE_S = 3e-3
@@ -162,6 +158,7 @@ class GcodeWriter:
         self.done_moves: set[int] = set()  # planned move indices written
         self.prev_v = None
         self.after_hold = False
+        self.at_rest_end = False  # the last motion run ended on the plan's rest point (rest_end)
         #: write extruder-only moves up to EXTRUDE_SPARE_S faster (the command moved on during them)
         self.fast_extrude = True
         self.nlines = 0  # body lines written
@@ -249,6 +246,7 @@ class GcodeWriter:
             self.last_pt, self.last_k, self.e_last_ref = np.array(start, float), k0, float(e_mm[0])
             self.stream_start_mm = None
             self.stream += 1
+            self.at_rest_end = False
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()
         ends = np.concatenate([cut, [n]]).tolist()
@@ -328,7 +326,7 @@ class GcodeWriter:
         run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
         went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
         from_rest = []  # per motion run: it leaves rest on the plan's time, or at once from a rest end
-        at_rest_end = False  # the last run ended on the plan's rest point (plan_clock.rest_end)
+        at_rest_end = self.at_rest_end  # the last run ended on the plan's rest point (plan_clock.rest_end)
         last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
@@ -382,6 +380,7 @@ class GcodeWriter:
                 # from the last sample's (which a retraction ending between samples has not reached)
                 e_last = float(mv.end_mm[3])
         self.after_hold = after_hold
+        self.at_rest_end = at_rest_end
         self.pend_late_s = pend
         self.last_k, self.e_last_ref = last_k, e_last
         if not run_ids:
@@ -451,11 +450,11 @@ class GcodeWriter:
 
         srun, first_seg, Pr, d, dist, hold = settled(i, j)
         # sub-micrometre holds where a run leaves or comes to rest on the plan's time, and a leaving
-        # run's first point within NEAR_LEAD_MM of its lead (see holds.merged_rest_holds): those
-        # points go, the segments next to them span their time
+        # run's first point within REST_POINT_NEAR_MM of its lead (see holds.merged_rest_holds):
+        # those points go, the segments next to them span their time
         merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(from_rest, bool)[srun],
                                    np.array([e is not None for e in run_ends], bool)[srun],
-                                   near=dist < NEAR_LEAD_MM)
+                                   near=dist < REST_POINT_NEAR_MM)
         if merged is not None:
             i, j = merged
             dt = (K[j] - K[i]) * self.dt
