@@ -306,11 +306,18 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                     xyz[dense, 2] += wz[dense] * (meta["xyz"][dense, 2] - xyz[dense, 2])
                     fix |= dense
                     summ.plan_fallback_samples += int(np.sum(np.maximum(w, wz) >= 1.0))
+            at_sample = None  # the command at the samples ZLimited moved onto a z reversal, m
             if zlim is not None:  # moves max_z_accel binds: every sample a segment (see ZLimited)
+                pre = xyz.copy()
                 zd, snapped, shift = zlim.dense(meta["move_index"], moves, xyz, k_plan=meta.get("k"), dt_s=dt,
                                                 new_stream=new_stream)
                 dense = zd if dense is None else (dense | zd)
-                fix |= snapped
+                if snapped.any():
+                    # the moved point is the command at the vertex's time, where the writer puts it;
+                    # the intended command at the sample's own time stays (the self-check compares
+                    # the re-planned output with it there: the point's value at the sample's time
+                    # was up to 50 um off where the command moves fast in XY)
+                    at_sample = (snapped, pre[snapped])
             # the firmware refuses positions outside its limits: a correction that pokes past
             # them (at z_max after homing, at the rim) is clamped to the boundary
             cl = _clamp_to_workspace(xyz, geom)
@@ -320,6 +327,11 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             if fix.any():
                 qc = qc.copy()
                 qc[fix] = inverse(geom, xyz[fix])
+            if at_sample is not None:
+                qc = qc.copy() if not fix.any() else qc
+                sn, p_ = at_sample
+                _clamp_to_workspace(p_, geom)
+                qc[sn] = inverse(geom, p_)
             summ.max_correction_um = max(summ.max_correction_um,
                                          float(np.max(np.abs(qc - meta["q"]))) * 1e6)
             qf.write(qc.astype(np.float32).tobytes())
