@@ -156,17 +156,15 @@ def merged_wet_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, hold: np.nd
     if n == 0 or not (hold & wet).any():
         return None
     same_prev = np.r_[False, srun[1:] == srun[:-1]]
-    starts = np.nonzero(hold & ~(np.r_[False, hold[:-1]] & same_prev))[0]
+    goes_on = hold & np.r_[False, hold[:-1]] & same_prev  # a hold that continues the group before it
+    starts = np.nonzero(hold & ~goes_on)[0]
+    ends = np.nonzero(hold & ~np.r_[goes_on[1:], False])[0]  # (the same groups, in order)
     cw = np.r_[0, np.cumsum(wet & hold)]
+    is_wet = cw[ends + 1] > cw[starts]
     j = j.copy()
     keep = np.ones(n, bool)
-    for g0 in starts.tolist():
-        g1 = g0
-        while g1 + 1 < n and hold[g1 + 1] and srun[g1 + 1] == srun[g0]:
-            g1 += 1
+    for g0, g1 in zip(starts[is_wet].tolist(), ends[is_wet].tolist()):
         nx = g1 + 1
-        if cw[g1 + 1] == cw[g0]:
-            continue  # dry
         if nx < n and srun[nx] == srun[g0]:
             j[g0] = j[nx]
             keep[g0 + 1:nx + 1] = False

@@ -325,7 +325,7 @@ class GcodeWriter:
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
         run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
         went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
-        from_rest = []  # per motion run: it leaves rest on the plan's time, or at once from a rest end
+        rest_go = []  # per motion run: it leaves at once from the plan's rest point the run before ended on
         at_rest_end = self.at_rest_end  # the last run ended on the plan's rest point (plan_clock.rest_end)
         last_pt, last_k, e_last, after_hold = self.last_pt, self.last_k, self.e_last_ref, self.after_hold
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
@@ -346,9 +346,7 @@ class GcodeWriter:
                 # a move that starts from rest between two samples starts on the plan's time
                 k_go = rest_start(self.dt, k0, a, mv, k_plan, on_plan, last_pt, last_k)
                 went.append(k_go != last_k)
-                # it leaves from rest on the plan's time too where the run before it ended on the
-                # plan's rest point and its move starts from rest
-                from_rest.append(k_go != last_k or (at_rest_end and (mv is None or mv.start_v_mm_s <= 1e-9)))
+                rest_go.append(k_go == last_k and at_rest_end and (mv is None or mv.start_v_mm_s <= 1e-9))
                 run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
                 run_ids.append(r)
                 a_s.append(a)
@@ -452,7 +450,8 @@ class GcodeWriter:
         # sub-micrometre holds where a run leaves or comes to rest on the plan's time, and a leaving
         # run's first point within REST_POINT_NEAR_MM of its lead (see holds.merged_rest_holds):
         # those points go, the segments next to them span their time
-        merged = merged_rest_holds(i, j, srun, first_seg, hold, np.asarray(from_rest, bool)[srun],
+        went_a, rest_go_a = np.asarray(went, bool), np.asarray(rest_go, bool)
+        merged = merged_rest_holds(i, j, srun, first_seg, hold, (went_a | rest_go_a)[srun],
                                    np.array([e is not None for e in run_ends], bool)[srun],
                                    near=dist < REST_POINT_NEAR_MM)
         if merged is not None:
@@ -488,12 +487,12 @@ class GcodeWriter:
             # (the stream's pre-roll ends a sample before the plan's first move): the firmware would
             # go on at once, a sample early for the rest of the file where the plan leaves no slack
             # (a move at max_z_accel); it waits there (a G4, feed_solve's wait_out) from rest
-            ahead = first_seg & np.asarray(went, bool)[srun] & (run_pre[run_ids[srun]] < -0.5 * self.dt)
+            ahead = first_seg & went_a[srun] & (run_pre[run_ids[srun]] < -0.5 * self.dt)
             stop_first = stop_first | ahead
             # a run that leaves rest at once where the run before it ended on the plan's rest point:
             # the firmware stops there as the plan does (a G4 P0 flushes its look-ahead) rather than
             # carry a micrometre's turn through at speed and brake the plan's ramp for it
-            go = first_seg & (np.asarray(from_rest, bool) & ~np.asarray(went, bool))[srun] & ~stop_first
+            go = first_seg & rest_go_a[srun] & ~stop_first
             for q in np.nonzero(go)[0].tolist():
                 ch.run_stop[int(run_ids[srun[q]])] = True
             stop_first = stop_first | go

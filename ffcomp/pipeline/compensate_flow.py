@@ -324,14 +324,13 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             if cl.any():
                 summ.clamped += int(cl.sum())
                 fix |= cl
-            if fix.any():
+            if fix.any() or at_sample is not None:
                 qc = qc.copy()
                 qc[fix] = inverse(geom, xyz[fix])
-            if at_sample is not None:
-                qc = qc.copy() if not fix.any() else qc
-                sn, p_ = at_sample
-                _clamp_to_workspace(p_, geom)
-                qc[sn] = inverse(geom, p_)
+                if at_sample is not None:
+                    sn, p_ = at_sample
+                    _clamp_to_workspace(p_, geom)
+                    qc[sn] = inverse(geom, p_)
             summ.max_correction_um = max(summ.max_correction_um,
                                          float(np.max(np.abs(qc - meta["q"]))) * 1e6)
             qf.write(qc.astype(np.float32).tobytes())
