@@ -28,6 +28,11 @@ Sections
     damping, N s/m), ``b`` (guide friction, N s/m), ``k`` (belt stiffness, N/m), electrical
     ``d0`` (1/s^2), ``d1`` (1/s), ``d2`` (1/s); effector side: ``m_n`` (kg), ``m_f`` (mass of one
     forearm pair, kg), ``b_nt`` (N s/m).
+``[firmware_retraction]``
+    Optional: the printer's Klipper ``[firmware_retraction]`` values, ``retract_length_mm``,
+    ``retract_speed_mm_s``, ``unretract_extra_length_mm``, ``unretract_speed_mm_s`` (Klipper's defaults
+    0, 20, 0, 10 for the keys not given).  With it, ``G10``/``G11`` are timed as the extruder-only moves
+    the firmware makes of them; without it they are stops (:mod:`ffcomp.gcode.commands`).
 ``[[effects]]``
     Optional physical effects beyond the paper's model: ``name`` plus that effect's parameters.
 """
@@ -50,6 +55,7 @@ __all__ = [
     "Geometry",
     "Limits",
     "Dynamics",
+    "FirmwareRetraction",
     "PrinterProfile",
     "load_profile",
     "default_profile",
@@ -137,6 +143,17 @@ class Dynamics:
         return self.m_n + 1.5 * self.m_f
 
 
+@dataclass(frozen=True)
+class FirmwareRetraction:
+    """Klipper's ``[firmware_retraction]`` (mm, mm/s; its defaults): what ``G10``/``G11`` make the
+    extruder do (``SET_RETRACTION`` in a file changes them from there on)."""
+
+    retract_length_mm: float = 0.0
+    retract_speed_mm_s: float = 20.0
+    unretract_extra_length_mm: float = 0.0
+    unretract_speed_mm_s: float = 10.0
+
+
 _PER_TOWER = {"arm_length_mm", "delta_radius_mm", "tower_angles_deg", "m", "c", "b", "k", "d0", "d1", "d2"}
 
 
@@ -155,6 +172,8 @@ class PrinterProfile:
         :mod:`ffcomp.model.effects`.
     source : str or None
         File the profile was loaded from (for error messages).
+    firmware_retraction : FirmwareRetraction or None
+        Optional section: the firmware's G10/G11 settings (None: G10/G11 are stops).
     start_position_mm : (x, y, z) or None
         Optional top-level key: where the toolhead stands when a file that moves before any G28
         starts (e.g. where the printer's ``PRINT_START`` macro leaves it); ``--start`` overrides it.
@@ -167,6 +186,7 @@ class PrinterProfile:
     effects: tuple = ()
     source: str | None = None
     start_position_mm: tuple | None = None
+    firmware_retraction: FirmwareRetraction | None = None
 
     def geometry_si(self) -> DeltaGeometry:
         return self.geometry.to_si()
@@ -189,6 +209,8 @@ class PrinterProfile:
             d["effects"] = [dict(e) for e in self.effects]
         if self.start_position_mm is not None:
             d["start_position_mm"] = list(self.start_position_mm)
+        if self.firmware_retraction is not None:
+            d["firmware_retraction"] = asdict(self.firmware_retraction)
         return d
 
 
@@ -263,8 +285,16 @@ _RULES: dict[str, dict[str, dict]] = {
         "m_f": {"nonneg": True},
         "b_nt": {"nonneg": True},
     },
+    # Klipper's minimums: lengths >= 0, speeds >= 1 mm/s
+    "firmware_retraction": {
+        "retract_length_mm": {"nonneg": True},
+        "retract_speed_mm_s": {"lo": 1.0},
+        "unretract_extra_length_mm": {"nonneg": True},
+        "unretract_speed_mm_s": {"lo": 1.0},
+    },
 }
-_CLASSES = {"geometry": Geometry, "limits": Limits, "dynamics": Dynamics}
+_CLASSES = {"geometry": Geometry, "limits": Limits, "dynamics": Dynamics,
+            "firmware_retraction": FirmwareRetraction}
 
 #: the profile format version this ffcomp reads and writes (top-level ``ffcomp_profile``)
 PROFILE_VERSION = 1
@@ -302,7 +332,7 @@ def _section(raw: dict, sec: str, source) -> Any:
             kw[key] = v
         else:
             kw[key] = _value(sec, key, v, source, **_RULES[sec][key])
-    if any(k not in kw for k in REQUIRED[sec]):
+    if any(k not in kw for k in REQUIRED.get(sec, ())):
         return None  # the values given are checked first; :func:`_require` names what is missing
     if sec == "limits":
         for key, other in _DEFAULT_FROM.items():
@@ -386,7 +416,8 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
     """Validate a parsed TOML document and build a :class:`PrinterProfile`."""
     if not isinstance(raw, dict):
         raise ProfileError("<root>", raw, "expected a table", source)
-    allowed = {"name", "geometry", "limits", "dynamics", "effects", "ffcomp_profile", "start_position_mm"}
+    allowed = {"name", "geometry", "limits", "dynamics", "effects", "ffcomp_profile", "start_position_mm",
+               "firmware_retraction"}
     for key in raw:
         if key not in allowed:
             raise ProfileError(key, raw[key], f"unknown top-level key (known: {', '.join(sorted(allowed))})",
@@ -411,8 +442,10 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
         if not isinstance(e.get("name"), str):
             raise ProfileError(f"effects[{i}].name", e.get("name"), "each effect needs a string name", source)
     start = _start_position(raw.get("start_position_mm"), geometry, source)
+    retraction = _section(raw, "firmware_retraction", source) if "firmware_retraction" in raw else None
     prof = PrinterProfile(name=name, geometry=geometry, limits=limits, dynamics=dynamics,
-                          effects=tuple(dict(e) for e in effects), source=source, start_position_mm=start)
+                          effects=tuple(dict(e) for e in effects), source=source, start_position_mm=start,
+                          firmware_retraction=retraction)
     if effects:
         from .model.effects import validate_effects  # effects know their own parameters
 

@@ -188,7 +188,27 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes
         limits["microsteps"] = micro
     if cp.has_section("extruder"):
         limits["instantaneous_corner_velocity_mm_s"] = get("extruder", "instantaneous_corner_velocity", 1.0)
-    return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path)
+        # the extruder-only limits time every retraction; Klipper's defaults scale the toolhead's by the
+        # default cross-section ratio 4 nozzle^2 / filament area (klippy/kinematics/extruder.py)
+        ratio = None
+        if cp.has_option("extruder", "nozzle_diameter") and cp.has_option("extruder", "filament_diameter"):
+            ratio = 4.0 * get("extruder", "nozzle_diameter") ** 2 / (
+                math.pi * (0.5 * get("extruder", "filament_diameter")) ** 2)
+        for key, toolhead in (("max_extrude_only_velocity", max_v), ("max_extrude_only_accel", max_a)):
+            unit = "_mm_s" if key.endswith("velocity") else "_mm_s2"
+            if cp.has_option("extruder", key):
+                limits[key + unit] = get("extruder", key)
+            elif ratio is not None:
+                limits[key + unit] = toolhead * ratio
+    prof = _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path)
+    if cp.has_section("firmware_retraction"):  # G10/G11 then run as Klipper makes them (its defaults)
+        fr = {f"{k}_mm" if "length" in k else f"{k}_mm_s": get("firmware_retraction", k, dflt)
+              for k, dflt in (("retract_length", 0.0), ("retract_speed", 20.0), ("unretract_extra_length", 0.0),
+                              ("unretract_speed", 10.0))}
+        d = prof.to_dict()
+        d["firmware_retraction"] = fr
+        prof = profile_from_dict(d, path)
+    return prof
 
 
 #: a parameter letter and its value: everything up to white space or the next letter that starts a

@@ -231,6 +231,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         t.add_row("other lines: passed / baked in / stops / unknown / skipped",
                   f"{d['commands_passed']} / {d['commands_baked']} / {d['commands_stopped']} / "
                   f"{d['commands_unknown']} / {d['lines_skipped']}")
+    if d.get("firmware_retractions"):
+        t.add_row("G10/G11 timed with [firmware_retraction]", f"{d['firmware_retractions']}")
     if "warnings" in d:
         t.add_row("warnings", f"{d['warnings']}" + ("  (listed below)" if d.get("notes") else ""))
     if d.get("stale_temps_removed"):

@@ -34,20 +34,22 @@ import math
 
 from ..errors import GcodeError, KinematicsError
 from .junction import JUNCTION_RULES, klipper_junction_deviation
-from .moves import DWELL, EXTRUDE, MOVE, PlannedMove
+from .moves import DWELL, EXTRUDE, FIRMWARE, MOVE, PlannedMove
 
 __all__ = ["KlipperPlanner", "KlipperDelta", "LOOKAHEAD_FLUSH_TIME", "BUFFER_TIME_HIGH", "SLOW_RATIO"]
 
 LOOKAHEAD_FLUSH_TIME = 0.250
 BUFFER_TIME_HIGH = 2.0
 SLOW_RATIO = 3.0
+#: commands the firmware turns into extruder-only moves of its own (``firmware_retraction``)
+_FIRMWARE_COMMANDS = ("G10", "G11")
 MOTOR_OFF_DWELL_S = 0.1  # DISABLE_STALL_TIME, applied before and after M18/M84
 
 
 class _Move:
     """Klipper's ``Move`` (mutable, internal)."""
 
-    __slots__ = ("lineno", "start", "end", "axes_d", "axes_r", "move_d", "accel", "jd", "is_kin",
+    __slots__ = ("lineno", "start", "end", "axes_d", "axes_r", "move_d", "accel", "jd", "is_kin", "kind",
                  "min_move_t", "max_start_v2", "max_cruise_v2", "delta_v2", "max_smoothed_v2",
                  "smooth_delta_v2", "next_junction_v2", "start_v", "cruise_v", "end_v", "accel_t",
                  "cruise_t", "decel_t")
@@ -260,6 +262,7 @@ class KlipperPlanner:
             accel = 99999999.9
             velocity = speed
             m.is_kin = is_kin = False
+            m.kind = FIRMWARE if line.command in _FIRMWARE_COMMANDS else EXTRUDE
         else:
             inv = 1.0 / move_d
             accel = self.max_accel
@@ -385,7 +388,7 @@ class KlipperPlanner:
         out = self.out
         n = self.n_out
         for m in moves:
-            out.append(PlannedMove(n, m.lineno, MOVE if m.is_kin else EXTRUDE, t, m.start, m.end, m.move_d,
+            out.append(PlannedMove(n, m.lineno, MOVE if m.is_kin else m.kind, t, m.start, m.end, m.move_d,
                                    m.axes_r, m.start_v, m.cruise_v, m.end_v, m.accel, m.accel_t, m.cruise_t,
                                    m.decel_t))
             n += 1

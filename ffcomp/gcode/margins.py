@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .moves import EXTRUDE, MOVE
+from .moves import EXTRUDE, FIRMWARE, MOVE
+
+_E_ONLY = (EXTRUDE, FIRMWARE)  # extruder-only moves, the file's own or the firmware's (G10/G11)
 
 __all__ = ["hold_margins", "with_margins"]
 
@@ -42,9 +44,9 @@ def hold_margins(move_index: np.ndarray, moves: dict, prev_mi: int | None) -> li
         if a is None or b is None or int(b.index) != int(a.index) + 1:
             continue
         i = j + 1 - (prev_mi is not None)
-        if a.kind == MOVE and b.kind == EXTRUDE and b.end_mm[3] < b.start_mm[3]:
+        if a.kind == MOVE and b.kind in _E_ONLY and b.end_mm[3] < b.start_mm[3]:
             out.append((i, "before"))
-        elif a.kind == EXTRUDE and b.kind == MOVE and a.end_mm[3] > a.start_mm[3]:
+        elif a.kind in _E_ONLY and b.kind == MOVE and a.end_mm[3] > a.start_mm[3]:
             out.append((i, "after"))
     return out
 

@@ -5,7 +5,8 @@ A planned move starts at ``start_mm`` at print time ``t_start_s``, accelerates a
 ``end_v_mm_s`` for ``decel_t_s``.  The distance travelled along the move, ``s(t)``, maps to the four
 axes through ``position = start_mm + unit * s`` (``unit`` is ``d(x, y, z, e)/ds``): for an XYZ move
 ``s`` is the Cartesian path length and ``unit`` holds the direction cosines plus the extrusion ratio;
-for an extruder-only move ``s`` is the filament length and ``unit = (0, 0, 0, +-1)``; a dwell has
+for an extruder-only move ``s`` is the filament length and ``unit = (0, 0, 0, +-1)`` (kind ``extrude``,
+or ``firmware`` where the firmware makes it of a command line: Klipper's ``G10``/``G11``); a dwell has
 ``unit = 0`` and lasts ``cruise_t_s``.  Moves follow each other without gaps: ``t_start_s`` of one is
 ``t_end_s`` of the previous.
 """
@@ -14,10 +15,13 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-__all__ = ["PlannedMove", "MOVE", "EXTRUDE", "DWELL"]
+__all__ = ["PlannedMove", "MOVE", "EXTRUDE", "FIRMWARE", "DWELL"]
 
 MOVE = "move"
 EXTRUDE = "extrude"
+#: an extruder-only move the firmware makes of a command (``G10``/``G11``): timed like ``extrude``, and
+#: written as its own line (the firmware, not the file, sets its length and speed)
+FIRMWARE = "firmware"
 DWELL = "dwell"
 
 
@@ -33,7 +37,8 @@ class PlannedMove(NamedTuple):
     lineno : int
         Source line number (1-based) of the G-code line that produced it.
     kind : str
-        ``"move"`` (XYZ, with or without extrusion), ``"extrude"`` (extruder only) or ``"dwell"``.
+        ``"move"`` (XYZ, with or without extrusion), ``"extrude"`` (extruder only), ``"firmware"`` (extruder
+        only, made by the firmware of a ``G10``/``G11`` line) or ``"dwell"``.
     t_start_s : float
         Print time at which the move starts, s.
     start_mm, end_mm : tuple of 4 float

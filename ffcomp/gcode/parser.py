@@ -158,6 +158,14 @@ class GcodeParser:
         What an unknown macro or G code is (:data:`~ffcomp.gcode.commands.UNKNOWN_POLICIES`): ``"stop"``
         (a :class:`Stop`, with a warning), ``"pass"`` (passed through, with a warning) or ``"refuse"``
         (an error).
+    firmware_retraction : FirmwareRetraction, optional
+        The printer's Klipper ``[firmware_retraction]`` settings (:class:`ffcomp.profile.FirmwareRetraction`).
+        With them (Klipper dialect), ``G10``/``G11`` are the extruder-only moves Klipper's
+        ``firmware_retraction`` makes of them (``G1 E-<retract_length> F<retract_speed * 60>`` in ``G91``
+        inside a saved G-code state, so the file's E coordinate does not change; a ``G10`` while
+        retracted does nothing) and ``SET_RETRACTION`` changes the settings; without them (or under a
+        speed or extrude factor other than 100 %, which the output bakes in but Klipper's ``G10``
+        would apply) they are stops.
 
     Attributes
     ----------
@@ -166,7 +174,9 @@ class GcodeParser:
     warning_messages : list of str
     counts : dict
         Commands seen per class: ``pass``, ``state``, ``stop`` (known stops), ``unknown`` (unknown
-        commands, whatever the policy made of them), ``skipped`` (malformed lines skipped leniently).
+        commands, whatever the policy made of them), ``skipped`` (malformed lines skipped leniently);
+        ``firmware_retraction``: the ``G10``/``G11`` lines (among ``pass``) timed as the extruder moves
+        Klipper makes of them.
     first_motion_line, first_home_line : int or None
         Line numbers of the first move (G0-G3) and of the first G28.
     first_motion : LinearMove, ArcMove or None
@@ -185,6 +195,7 @@ class GcodeParser:
         start_position_mm: tuple = (0.0, 0.0, 0.0, 0.0),
         max_kept_warnings: int = 100,
         unknown_policy: str = "stop",
+        firmware_retraction=None,
     ):
         if dialect not in DIALECTS:
             raise ValueError(f"unknown G-code dialect {dialect!r} (known: {', '.join(DIALECTS)})")
@@ -193,7 +204,7 @@ class GcodeParser:
         if unknown_policy not in UNKNOWN_POLICIES:
             raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {unknown_policy!r}")
         self.unknown_policy = unknown_policy
-        self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0}
+        self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0, "firmware_retraction": 0}
         self.first_motion_line: int | None = None
         self.first_home_line: int | None = None
         self.first_motion: LinearMove | ArcMove | None = None
@@ -230,6 +241,15 @@ class GcodeParser:
             "M220": self._m220, "M221": self._m221,
             "SET_VELOCITY_LIMIT": self._set_velocity_limit, "SET_GCODE_OFFSET": self._set_gcode_offset,
         }
+        # Klipper's firmware_retraction: its settings (mm, mm/s) and whether the filament is retracted
+        self.firmware_retraction = firmware_retraction if dialect == "klipper" else None
+        self.is_retracted = False
+        self.retraction_stops = 0  # G10/G11 lines planned as stops (no settings, or a speed/extrude factor)
+        if self.firmware_retraction is not None:
+            fr = self.firmware_retraction
+            self._retract = [fr.retract_length_mm, fr.retract_speed_mm_s, fr.unretract_extra_length_mm,
+                             fr.unretract_speed_mm_s]
+            self._handlers.update(G10=self._g10, G11=self._g11, SET_RETRACTION=self._set_retraction)
 
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[GcodeLine]:
@@ -298,6 +318,8 @@ class GcodeParser:
             return None
         if cls == STOP:
             self.counts[STOP] += 1
+            if cmd in ("G10", "G11"):
+                self._retraction_stop(lineno, text)
             return Stop(cmd)
         # an unknown macro or G code: the policy decides
         if _has_undecodable(cmd):
@@ -748,6 +770,67 @@ class GcodeParser:
                             accel_to_decel_mm_s2=p.get("ACCEL_TO_DECEL"),
                             square_corner_velocity_mm_s=p.get("SQUARE_CORNER_VELOCITY"),
                             minimum_cruise_ratio=mcr)
+
+    # ------------------------------------------------------------------ firmware retraction (Klipper)
+    def _g10(self, params):
+        return self._fw_retract(True)
+
+    def _g11(self, params):
+        return self._fw_retract(False)
+
+    def _fw_retract(self, retract: bool):
+        """``cmd_G10`` / ``cmd_G11`` of Klipper's ``firmware_retraction``: ``SAVE_GCODE_STATE``, ``G91``,
+        ``G1 E<+-length> F<int(speed * 60)>``, ``RESTORE_GCODE_STATE`` (which moves the E base by the
+        same amount, so the file's E coordinate stays)."""
+        if self.speed_factor != 1.0 / 60.0 or self.extrude_factor != 1.0 or self.unit != 1.0:
+            # the output bakes M220/M221 in, Klipper's G10 would apply them: time it as a stop
+            self.counts[STOP] += 1
+            self._retraction_stop(self.lines_read, "G10" if retract else "G11",
+                                  "under an M220/M221 factor other than 100 %")
+            self.is_retracted = retract
+            return Stop("G10" if retract else "G11")
+        self.counts[PASS] += 1
+        if retract == self.is_retracted:
+            return None  # Klipper does nothing
+        self.is_retracted = retract
+        length, speed, extra, unspeed = self._retract
+        de = -round(length, 5) if retract else round(length + extra, 5)
+        feed = int((speed if retract else unspeed) * 60.0)  # Klipper's "F%d"
+        if de == 0.0:
+            return None  # a zero-length move: Klipper's toolhead skips it
+        self.counts["firmware_retraction"] += 1
+        x, y, z, e0 = self.last_position
+        e1 = e0 + de
+        self.last_position = [x, y, z, e1]
+        self.base_position[3] += de
+        return LinearMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor)
+
+    def _retraction_stop(self, lineno: int, text: str, why: str = "") -> None:
+        """Count a G10/G11 planned as a stop; the first one is a warning that says what it costs."""
+        self.retraction_stops += 1
+        if self.retraction_stops > 1:
+            return
+        if not why:
+            why = ("the profile has no [firmware_retraction] section" if self.dialect.name == "klipper"
+                   else "ffcomp times G10/G11 only for Klipper")
+        self._warn(lineno, f"firmware retraction planned as a stop ({why}): at every G10/G11 the compensation "
+                   "comes to rest and starts again, and the nozzle stands still for the inverse's settle and "
+                   "pre-roll (0.35 s by default) besides the retraction itself; give the profile your "
+                   "printer.cfg's [firmware_retraction] values to time G10/G11 as the extruder moves Klipper "
+                   "makes of them", text)
+
+    def _set_retraction(self, params):
+        keys = ("RETRACT_LENGTH", "RETRACT_SPEED", "UNRETRACT_EXTRA_LENGTH", "UNRETRACT_SPEED")
+        p = self._ext(params, keys, "SET_RETRACTION")
+        for i, k in enumerate(keys):
+            if k in p:
+                lo = 1.0 if k.endswith("SPEED") else 0.0
+                if p[k] < lo:
+                    _fail(f"SET_RETRACTION {k} must be >= {lo:g}")
+                self._retract[i] = p[k]
+        self.is_retracted = False
+        self.counts[PASS] += 1
+        return None
 
     def _set_gcode_offset(self, params):
         keys = ("X", "Y", "Z", "E", "X_ADJUST", "Y_ADJUST", "Z_ADJUST", "E_ADJUST")

@@ -197,7 +197,7 @@ class GcodePlan:
         self.parser: GcodeParser = parse_gcode(
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
             home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm,
-            unknown_policy=unknown_policy)
+            unknown_policy=unknown_policy, firmware_retraction=profile.firmware_retraction)
         self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
                                     start_position_mm=start_position_mm, **planner_kw)
         self._used = False

@@ -13,7 +13,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from .moves import DWELL, EXTRUDE, MOVE, PlannedMove
+from .moves import DWELL, EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .planner import GcodePlan
 
 __all__ = ["PlanSummary", "PlanTrace", "summarize_gcode"]
@@ -148,7 +148,7 @@ class _Acc:
                 self.xy.append((m.end_mm[0], m.end_mm[1]))
                 self.ext.append(de > 0)
                 self.last_xy = (m.end_mm[0], m.end_mm[1])
-        elif kind == EXTRUDE:
+        elif kind == EXTRUDE or kind == FIRMWARE:
             self.extrude_only += 1
         elif kind == DWELL:
             self.dwells += 1

@@ -47,7 +47,7 @@ from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups  # no
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
-from .moves import EXTRUDE, MOVE, PlannedMove
+from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
 from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
@@ -283,6 +283,12 @@ class GcodeWriter:
                     speed = chunk.extrude_v[r] or max(mv.cruise_v_mm_s, 1e-3)
                     self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.3f}\n")
                     self.stats.extrude_moves += 1
+                elif kind == FIRMWARE:  # G10/G11: the firmware makes the move of its own line
+                    src = self._line_iter_next()
+                    if src is None or src.lineno != ln:
+                        raise AssertionError(f"the firmware's extruder move of line {ln} is not next to write")
+                    self._w(src.raw if src.raw.endswith("\n") else src.raw + "\n")
+                    self.stats.extrude_moves += 1
                 else:
                     self._dwell(mv, ln)
             if mv is not None:
@@ -366,7 +372,7 @@ class GcodeWriter:
                     n_s[-1] += end[3]
             else:
                 at_rest_end = False
-                if kind == EXTRUDE and mv.index not in self.done_moves:
+                if (kind == EXTRUDE or kind == FIRMWARE) and mv.index not in self.done_moves:
                     ext_de[r] = mv.end_mm[3] - mv.start_mm[3]
                     ext_runs.append(r)
                 after_hold = True

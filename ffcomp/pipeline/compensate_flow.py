@@ -36,7 +36,7 @@ from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, s
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings
-from .limited_moves import LimitBound, ZLimited, moves_where, z_held, z_hop, z_moving
+from .limited_moves import LimitBound, ZLimited, after_firmware, moves_where, z_held, z_hop, z_moving
 from .options import (  # noqa: F401  (re-exported: the run's options and summary live in options.py)
     JUMP_M,
     PIECE_START_FEED_MM_MIN,
@@ -152,7 +152,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         lim_notes = limit_warnings(profile, needs) if bd.firmware == "klipper" else []
         summ.warnings += len(lim_notes)
         summ.notes.extend(lim_notes)
-        head, foot = header_lines(profile, opts, src, accel, needs)
+        head, foot = header_lines(profile, opts, src, accel, needs, summ.firmware_retractions)
         final_fd, final_tmp = make_temp(out_dir, "out", ".gcode")
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as fo, \
@@ -258,7 +258,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             _open_existing(segfile, "wb") as sf:
         lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
                                  home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
-                                 start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy))
+                                 start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy,
+                                 firmware_retraction=profile.firmware_retraction))
         if cuts is not None:  # the piece's own source lines only (known once its cuts are found)
             lines = cuts.window(lines)
         accel = header_accel(profile, opts)
@@ -370,7 +371,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                         and zlim is not None and zlim.limited(mv)))
 
             def pins(meta):
-                return moves_where(meta["move_index"], moves, pinned)
+                return (moves_where(meta["move_index"], moves, pinned)
+                        | after_firmware(meta["move_index"], moves, meta["k"] * dt, dt))
 
             steep = (lambda meta: moves_where(meta["move_index"], moves, zlim.limited)) if zlim is not None else None
             stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep)
@@ -421,6 +423,7 @@ def _count_commands(summ: CompensationSummary, counts: dict) -> None:
     summ.commands_stopped = counts.get("stop", 0)
     summ.commands_unknown = counts.get("unknown", 0)
     summ.lines_skipped = counts.get("skipped", 0)
+    summ.firmware_retractions = counts.get("firmware_retraction", 0)
 
 
 def _rest_follows_moves(move_index: np.ndarray, mask: np.ndarray) -> np.ndarray:

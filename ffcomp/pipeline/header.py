@@ -96,6 +96,12 @@ def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
         f"square_corner_velocity: {needs.square_corner_velocity:g}",
         f"minimum_cruise_ratio: {needs.minimum_cruise_ratio:g}",
     ]
+    fr = profile.firmware_retraction if profile is not None else None
+    if fr is not None:  # G10/G11 are timed with these: the printer must retract the same way
+        lines += ["[firmware_retraction]", f"retract_length: {fr.retract_length_mm:g}",
+                  f"retract_speed: {fr.retract_speed_mm_s:g}",
+                  f"unretract_extra_length: {fr.unretract_extra_length_mm:g}",
+                  f"unretract_speed: {fr.unretract_speed_mm_s:g}"]
     return "\n".join(lines) + "\n"
 
 
@@ -104,8 +110,10 @@ def header_accel(profile, opts) -> float:
     return float(max(1e5, opts.accel_factor * profile.limits.max_accel_mm_s2))
 
 
-def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | None = None
-                 ) -> tuple[list[str], list[str]]:
+def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | None = None,
+                 firmware_retractions: int = 0) -> tuple[list[str], list[str]]:
+    """The output's header and footer lines; ``firmware_retractions``: how many G10/G11 of the file
+    are timed with the profile's ``[firmware_retraction]`` (the header then states those values)."""
     lim = profile.limits
     settings = (f"method={opts.method} tol_um={opts.tol_um:g} z_mode={opts.z_mode} "
                 f"knots={opts.inverse.knot_samples / lim.sample_rate_hz * 1e3:g}ms "
@@ -131,6 +139,14 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
         head += [
             f"; timed for [printer] max_z_accel = {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
             f"max_z_velocity = {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
+        ]
+        fr = profile.firmware_retraction
+        if firmware_retractions and fr is not None:
+            head += [f"; G10/G11 timed for [firmware_retraction] retract_length = {fr.retract_length_mm:g}, "
+                     f"retract_speed = {fr.retract_speed_mm_s:g}, unretract_extra_length = "
+                     f"{fr.unretract_extra_length_mm:g}, unretract_speed = {fr.unretract_speed_mm_s:g} as in the "
+                     "profile (and the file's SET_RETRACTION lines)"]
+        head += [
             f"SET_VELOCITY_LIMIT ACCEL={accel:.0f} MINIMUM_CRUISE_RATIO=0 "
             f"SQUARE_CORNER_VELOCITY={opts.corner_velocity_mm_s:g}",
         ]

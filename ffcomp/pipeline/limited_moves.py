@@ -13,8 +13,9 @@ import numpy as np
 
 from ..gcode.chain_plan import ChainLimits, segment_limits
 from ..gcode.extrusion import extruder_capped as _extruder_capped
+from ..gcode.moves import FIRMWARE
 
-__all__ = ["LimitBound", "ZLimited", "moves_where", "holds", "z_held", "z_moving", "z_hop"]
+__all__ = ["LimitBound", "ZLimited", "moves_where", "holds", "after_firmware", "z_held", "z_moving", "z_hop"]
 
 
 def moves_where(move_index: np.ndarray, moves: dict, pred) -> np.ndarray:
@@ -24,9 +25,34 @@ def moves_where(move_index: np.ndarray, moves: dict, pred) -> np.ndarray:
     return hit[inv.reshape(-1)] if len(hit) else np.zeros(len(move_index), bool)
 
 
-def holds(move_index: np.ndarray, moves: dict) -> np.ndarray:
-    """Samples whose planned move is an extruder-only move or a dwell (the nozzle stands still)."""
-    return moves_where(move_index, moves, lambda mv: mv.kind != "move")
+def holds(move_index: np.ndarray, moves: dict, t_s: np.ndarray | None = None, dt: float = 0.0) -> np.ndarray:
+    """Samples whose planned move is an extruder-only move or a dwell (the nozzle stands still); with
+    the samples' times ``t_s`` (s) and the sample time ``dt`` (s), also those of
+    :func:`after_firmware`."""
+    held = moves_where(move_index, moves, lambda mv: mv.kind != "move")
+    if t_s is not None:
+        held |= after_firmware(move_index, moves, t_s, dt)
+    return held
+
+
+def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: float) -> np.ndarray:
+    """The first sample of each move that leaves rest right after a firmware's extruder-only move
+    (``G10``/``G11``, kind ``firmware``): the sample after the move's start, less than ``dt`` later.
+
+    The writer can shorten an extruder-only move of the file's own (and wait out the rest), so the
+    command may leave the rest point one sample before the plan does; a ``G10``/``G11`` lasts what
+    the firmware makes of it, ending between two samples, and the command must stand on the plan
+    until the sample after that end, or the first segment cannot reach it in time from rest.
+    """
+    def follows(mv) -> bool:
+        prev = moves.get(mv.index - 1)
+        return mv.kind == "move" and prev is not None and prev.kind == FIRMWARE
+
+    hit = moves_where(move_index, moves, follows)
+    if hit.any():
+        start = np.array([moves[int(i)].t_start_s for i in move_index[hit].tolist()])
+        hit[hit] = np.asarray(t_s)[hit] - start < dt * (1.0 - 1e-9)
+    return hit
 
 
 def z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:

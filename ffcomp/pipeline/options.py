@@ -133,6 +133,9 @@ class CompensationSummary:
     commands_stopped: int = 0
     commands_unknown: int = 0
     lines_skipped: int = 0
+    #: G10/G11 timed as the extruder moves Klipper's firmware_retraction makes of them (the profile's
+    #: [firmware_retraction]); without that section they are stops (among commands_stopped)
+    firmware_retractions: int = 0
     #: where the plan starts (x, y, z mm) and whether the file homes before its first move
     start_mm: list | None = None
     homed_first: bool | None = None

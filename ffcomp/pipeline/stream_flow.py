@@ -139,7 +139,7 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                     # the derivatives of the samples themselves)
                     qd, qdd = (carriage_rates(geom, blk.xyz_m[part], blk.v_m_s[part], blk.a_m_s2[part])
                                if icfg.derivatives == "given" else (None, None))
-                    hold = holds(blk.move_index[part], moves) if opts.pin_holds else None
+                    hold = holds(blk.move_index[part], moves, blk.t_s[part], dt) if opts.pin_holds else None
                     yield from out(inv.push(q[part], blk.xyz_m[part], qd, qdd, hold))
                 if where is None:
                     break
