@@ -1,6 +1,7 @@
 """Timing on the absolute clock: the closed-loop feed solve, the self-check's drift, the header's
 firmware values, and ``simulate --compare`` aligning a pre-rolled output."""
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -305,6 +306,33 @@ def test_short_rest_to_rest_moves_the_firmware_cannot_time_are_holds(profile):
     P0b[0] = [0, 0, z + 0.02]  # the move before comes down: no stop before the short one
     assert not unrunnable_rests(lim, P0b, P1, dist, D, hold, dry, 5e-3)[1]
     assert not unrunnable_rests(lim, P0, P1, dist, D, np.zeros(3, bool), dry, 5e-3)[1]  # no rest after
+
+
+def test_a_settle_out_and_back_between_two_holds_is_a_hold(profile):
+    """A stream's settle after a pure z lift: from a hold the command jumps 3.8 um down in one sample,
+    then creeps back 1.8 and 1.4 um, then holds (vase.gcode's end on other_delta, 1.2 ms late).
+    Out and back needs ``2 (sqrt(d_out / a) + sqrt(d_back / a))``: more than the 3 ms, so the chain
+    stands still; given that time, or reaching beyond the tolerance, or extruding, it moves."""
+    from ffcomp.gcode.holds import unrunnable_rests
+
+    lim = ChainLimits(profile.with_(limits=replace(profile.limits, max_z_accel_mm_s2=3000.0)), 1e4, 5.0)
+    a = lim.max_z_accel
+    z = np.array([35.2, 35.2, 35.1962, 35.1980, 35.1994, 35.1994])
+    P0 = np.stack([np.zeros(5), np.zeros(5), z[:-1]], 1)
+    P1 = np.stack([np.zeros(5), np.zeros(5), z[1:]], 1)
+    dist = np.abs(np.diff(z))
+    hold = np.array([True, False, False, False, True])
+    dry = np.ones(5, bool)
+    need = 2 * (np.sqrt(3.8e-3 / a) + np.sqrt(3.2e-3 / a))
+    for D1, expect in ((1e-3, True), (need / 2.9, False)):  # three segments of D1 each
+        D = np.full(5, D1)
+        assert unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 5e-3)[1:4].tolist() == [expect] * 3
+    D = np.full(5, 1e-3)
+    assert not unrunnable_rests(lim, P0, P1, dist, D, hold, dry, 3e-3)[1:4].any()  # beyond the tolerance
+    wet = dry.copy()
+    wet[2] = False
+    assert not unrunnable_rests(lim, P0, P1, dist, D, hold, wet, 5e-3)[1:4].any()
+    assert not unrunnable_rests(lim, P0, P1, dist, D, np.r_[hold[:4], False], dry, 5e-3)[1:4].any()
 
 
 @pytest.mark.parametrize("which,name", [("default", "stress_square.gcode"), ("other", "checksums.gcode")])

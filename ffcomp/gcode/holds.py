@@ -56,7 +56,41 @@ def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.
         cos = np.einsum("ij,ij->i", a, b) / np.maximum(dist[k - 1] * dist[k], 1e-300)
         prev_rest |= turn & (cos < -0.999)
     out[k[prev_rest]] = True
+    _unrunnable_chains(lim, P0, P1, dist, D, hold, dry, tol_mm, out)
     return out
+
+
+#: the longest chain of short segments between two rests :func:`_unrunnable_chains` looks at
+MAX_CHAIN = 8
+
+
+def _unrunnable_chains(lim: ChainLimits, P0, P1, dist, D, hold, dry, tol_mm: float, out: np.ndarray) -> None:
+    """Chains of 2 to :data:`MAX_CHAIN` short dry segments from a hold to a hold, every point within
+    ``tol_mm`` of the chain's start, that the firmware cannot run in their time: a stream's settle
+    (the command wanders a few micrometres out and back before it stands still) written as a jump
+    out and a crawl back, each a stop-to-stop move, ran 1.2 ms late on a pure z settle at
+    ``max_z_accel`` (a vase's last lift).  The firmware needs at least ``2 sqrt(d / a)`` to go ``d``
+    from rest to rest: out to the farthest point and back to the end.  Such chains stand still
+    instead (``out`` set in place)."""
+    n = len(dist)
+    moving = ~hold & dry & (dist <= tol_mm)
+    starts = np.nonzero(moving[1:-1] & hold[:-2] & ~hold[2:])[0] + 1  # leaves a hold, goes on moving
+    for a in starts.tolist():
+        b = a
+        while b + 1 < n and b - a + 1 < MAX_CHAIN and moving[b + 1]:
+            b += 1
+        if b == a or b + 1 >= n or not hold[b + 1]:
+            continue
+        pts = P1[a:b + 1]
+        off = np.sqrt(np.sum((pts - P0[a]) ** 2, axis=1))
+        far = int(np.argmax(off))
+        if off[far] > tol_mm:
+            continue
+        acc = float(np.min(segment_limits(lim, P0[a:b + 1], P1[a:b + 1], np.zeros(b - a + 1))[1]))
+        back = float(np.sqrt(np.sum((pts[-1] - pts[far]) ** 2)))
+        need = 2.0 * (np.sqrt(off[far] / acc) + np.sqrt(back / acc))
+        if need > float(np.sum(D[a:b + 1])):
+            out[a:b + 1] = True
 
 
 def settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.ndarray, offs: np.ndarray,
