@@ -9,7 +9,7 @@ from ffcomp.errors import ProfileError
 from ffcomp.gcode.moves import FIRMWARE
 from ffcomp.gcode.parser import parse_text
 from ffcomp.gcode.planner import GcodePlan
-from ffcomp.gcode.records import LinearMove, Stop
+from ffcomp.gcode.records import FirmwareMove, Stop
 from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
 from ffcomp.profile import FirmwareRetraction, load_profile, profile_from_dict, profile_to_toml
 
@@ -32,7 +32,7 @@ def test_g10_g11_are_klippers_extruder_moves_and_keep_the_files_e_coordinate():
     cmds = [c for c, _ in ops]
     assert cmds == ["G1", "G10", "G10", "G1", "G11", "G11", "G1", "SET_RETRACTION", "G11", "G10"]
     g10, again, travel, g11, noop, line, setr, g11b, g10b = (op for _, op in ops[1:])
-    assert isinstance(g10, LinearMove) and g10.start == (1.0, 0.0, 0.0, 1.0)
+    assert isinstance(g10, FirmwareMove) and g10.start == (1.0, 0.0, 0.0, 1.0)
     assert g10.end[:3] == g10.start[:3] and g10.end[3] == pytest.approx(0.2)
     assert g10.speed_mm_s == 35.0
     assert again is None and noop is None and setr is None and g11b is None  # Klipper does nothing there
@@ -53,11 +53,15 @@ def test_without_settings_or_under_a_factor_they_are_stops_with_one_warning():
     assert par.retraction_stops == 3 and par.warnings == 1
     assert "no [firmware_retraction] section" in par.warning_messages[0]
     assert "0.35 s" in par.warning_messages[0]
-    # M221 (baked into the output) would scale Klipper's retraction: a stop, state still followed
-    par = GcodeParser("M221 S90\nG10\nM221 S100\nG10\nG11\n".splitlines(True), firmware_retraction=FR)
+    # the M220/M221 factors apply to Klipper's retraction, and the move carries them for the writer
+    par = GcodeParser("M221 S90\nM220 S150\nG10\nM221 S100\nM220 S100\nG10\nG11\n".splitlines(True),
+                      firmware_retraction=FR)
     ops = [ln.op for ln in par]
-    assert isinstance(ops[1], Stop) and ops[3] is None and isinstance(ops[4], LinearMove)
-    assert "M220/M221" in par.warning_messages[0]
+    assert isinstance(ops[2], FirmwareMove) and ops[5] is None and isinstance(ops[6], FirmwareMove)
+    assert ops[2].end[3] - ops[2].start[3] == pytest.approx(-0.8 * 0.9)
+    assert ops[2].speed_mm_s == pytest.approx(35.0 * 1.5)
+    assert (ops[2].speed_percent, ops[2].extrude_percent) == pytest.approx((150.0, 90.0))
+    assert (ops[6].speed_percent, ops[6].extrude_percent) == (100.0, 100.0) and par.warnings == 0
     # Marlin: stops (its FWRETRACT is not modelled)
     par = GcodeParser(["G10\n"], dialect="marlin", firmware_retraction=FR)
     assert isinstance(next(iter(par)).op, Stop)
@@ -132,6 +136,26 @@ def test_compensated_g10_g11_run_on_the_clock_like_the_files_own_retractions(tmp
                             CompensateOptions(predict=False))
     assert stops.commands_stopped == 2 and stops.firmware_retractions == 0
     assert stops.output_print_time_s - s.output_print_time_s > 0.5
+
+
+def test_under_m220_m221_the_output_sets_the_factors_around_the_firmwares_line(tmp_path, profile):
+    """The output bakes M220/M221 into its own moves; around a G10/G11 it sets the source's factors
+    again, so the firmware retracts the source's length at the source's speed, on the clock."""
+    prof = profile.with_(firmware_retraction=FR)
+    src = _layers(True).replace("SET_VELOCITY_LIMIT ACCEL=10000", "SET_VELOCITY_LIMIT ACCEL=10000\nM221 S95\nM220 S80")
+    (tmp_path / "f.gcode").write_text(src)
+    s = compensate_file(str(tmp_path / "f.gcode"), str(tmp_path / "o.gcode"), prof, CompensateOptions(predict=False))
+    out = (tmp_path / "o.gcode").read_text().splitlines()
+    k = out.index("G10")
+    assert [ln.split(" ;")[0] for ln in out[k - 2:k + 3]] == ["M220 S80", "M221 S95", "G10", "M220 S100", "M221 S100"]
+    assert s.firmware_retractions == 2 and abs(s.self_check_drift_ms) <= 0.2, s.self_check_drift_ms
+    # the re-planned output retracts what the source does: its extruder-only moves match the source's
+    src_fw = [m for m in GcodePlan(str(tmp_path / "f.gcode"), prof) if m.kind == FIRMWARE]
+    out_fw = [m for m in GcodePlan(str(tmp_path / "o.gcode"), prof) if m.kind == FIRMWARE]
+    assert [round(m.end_mm[3] - m.start_mm[3], 6) for m in out_fw] == [round(-0.8 * 0.95, 6), round(0.85 * 0.95, 6)]
+    for a, b in zip(src_fw, out_fw, strict=True):
+        assert b.duration_s == pytest.approx(a.duration_s, abs=1e-12)
+        assert b.cruise_v_mm_s == pytest.approx(min(35.0, 25.0) * 0.8 if a is src_fw[1] else 35.0 * 0.8)
 
 
 def test_profile_section_round_trips_validates_and_imports(tmp_path, profile):

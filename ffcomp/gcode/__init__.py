@@ -8,7 +8,7 @@ Flow: :func:`parse_gcode` (one :class:`GcodeLine` per input line) -> :func:`plan
 from .moves import PlannedMove
 from .parser import DIALECTS, GcodeParser, parse_gcode, parse_text
 from .planner import PLANNERS, GcodePlan, make_planner, plan_gcode, plan_moves
-from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
+from .records import ArcMove, Dwell, FirmwareMove, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
 from .sampler import SampleBlock, concat_blocks, sample_all, sample_blocks, sample_gcode
 from .summary import PlanSummary, PlanTrace, summarize_gcode
 
@@ -29,6 +29,7 @@ __all__ = [
     "Home",
     "LimitsChange",
     "LinearMove",
+    "FirmwareMove",
     "ModeChange",
     "Stop",
     "Sync",

@@ -50,6 +50,7 @@ from .commands import PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, class
 from .records import (
     ArcMove,
     Dwell,
+    FirmwareMove,
     GcodeLine,
     Home,
     LimitsChange,
@@ -162,10 +163,9 @@ class GcodeParser:
         The printer's Klipper ``[firmware_retraction]`` settings (:class:`ffcomp.profile.FirmwareRetraction`).
         With them (Klipper dialect), ``G10``/``G11`` are the extruder-only moves Klipper's
         ``firmware_retraction`` makes of them (``G1 E-<retract_length> F<retract_speed * 60>`` in ``G91``
-        inside a saved G-code state, so the file's E coordinate does not change; a ``G10`` while
-        retracted does nothing) and ``SET_RETRACTION`` changes the settings; without them (or under a
-        speed or extrude factor other than 100 %, which the output bakes in but Klipper's ``G10``
-        would apply) they are stops.
+        inside a saved G-code state, so the file's E coordinate does not change; the M220/M221 factors
+        apply; a ``G10`` while retracted does nothing) and ``SET_RETRACTION`` changes the settings;
+        without them they are stops.
 
     Attributes
     ----------
@@ -782,20 +782,14 @@ class GcodeParser:
         """``cmd_G10`` / ``cmd_G11`` of Klipper's ``firmware_retraction``: ``SAVE_GCODE_STATE``, ``G91``,
         ``G1 E<+-length> F<int(speed * 60)>``, ``RESTORE_GCODE_STATE`` (which moves the E base by the
         same amount, so the file's E coordinate stays)."""
-        if self.speed_factor != 1.0 / 60.0 or self.extrude_factor != 1.0 or self.unit != 1.0:
-            # the output bakes M220/M221 in, Klipper's G10 would apply them: time it as a stop
-            self.counts[STOP] += 1
-            self._retraction_stop(self.lines_read, "G10" if retract else "G11",
-                                  "under an M220/M221 factor other than 100 %")
-            self.is_retracted = retract
-            return Stop("G10" if retract else "G11")
         self.counts[PASS] += 1
         if retract == self.is_retracted:
             return None  # Klipper does nothing
         self.is_retracted = retract
         length, speed, extra, unspeed = self._retract
-        de = -round(length, 5) if retract else round(length + extra, 5)
-        feed = int((speed if retract else unspeed) * 60.0)  # Klipper's "F%d"
+        # Klipper's "G1 E%.5f F%d": the M221 factor scales E, the M220 factor the feed (G20 is not Klipper)
+        de = (-round(length, 5) if retract else round(length + extra, 5)) * self.extrude_factor
+        feed = int((speed if retract else unspeed) * 60.0)
         if de == 0.0:
             return None  # a zero-length move: Klipper's toolhead skips it
         self.counts["firmware_retraction"] += 1
@@ -803,16 +797,16 @@ class GcodeParser:
         e1 = e0 + de
         self.last_position = [x, y, z, e1]
         self.base_position[3] += de
-        return LinearMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor)
+        return FirmwareMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor, False,
+                            self.speed_factor * 6000.0, self.extrude_factor * 100.0)
 
     def _retraction_stop(self, lineno: int, text: str, why: str = "") -> None:
         """Count a G10/G11 planned as a stop; the first one is a warning that says what it costs."""
         self.retraction_stops += 1
         if self.retraction_stops > 1:
             return
-        if not why:
-            why = ("the profile has no [firmware_retraction] section" if self.dialect.name == "klipper"
-                   else "ffcomp times G10/G11 only for Klipper")
+        why = why or ("the profile has no [firmware_retraction] section" if self.dialect.name == "klipper"
+                      else "ffcomp times G10/G11 only for Klipper")
         self._warn(lineno, f"firmware retraction planned as a stop ({why}): at every G10/G11 the compensation "
                    "comes to rest and starts again, and the nozzle stands still for the inverse's settle and "
                    "pre-roll (0.35 s by default) besides the retraction itself; give the profile your "

@@ -31,7 +31,7 @@ from .klipper import KlipperPlanner
 from .marlin import MarlinPlanner
 from .moves import DWELL, PlannedMove
 from .parser import MAX_MOVE_S, GcodeParser, parse_gcode
-from .records import ArcMove, Dwell, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
+from .records import ArcMove, Dwell, FirmwareMove, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
 
 __all__ = ["PLANNERS", "plan_moves", "plan_gcode", "GcodePlan", "make_planner"]
 
@@ -76,6 +76,7 @@ def _nothing(p, op, line) -> None:
 
 _OPS = {
     LinearMove: _linear,
+    FirmwareMove: _linear,
     ArcMove: _arc,
     Dwell: _dwell,
     Home: _home,

@@ -20,6 +20,7 @@ Pos4 = tuple  # (x, y, z, e) in mm
 __all__ = [
     "Pos4",
     "LinearMove",
+    "FirmwareMove",
     "ArcMove",
     "Dwell",
     "Home",
@@ -50,6 +51,31 @@ class LinearMove(NamedTuple):
     end: Pos4
     speed_mm_s: float
     rapid: bool = False
+
+
+class FirmwareMove(NamedTuple):
+    """The extruder-only move the firmware makes of a ``G10``/``G11`` (Klipper's ``firmware_retraction``):
+    planned like a :class:`LinearMove`, written as its own line.
+
+    Attributes
+    ----------
+    start, end : tuple of 4 float
+        Machine position (x, y, z, e) before and after, mm (only e changes).
+    speed_mm_s : float
+        The retraction's feed rate with the M220 factor applied, mm/s.
+    rapid : bool
+        Always False (a :class:`LinearMove` field).
+    speed_percent, extrude_percent : float
+        The M220 and M221 factors in force (percent): the output bakes them into its own moves, so it
+        sets them again around this line for the firmware to apply them as it would to the source.
+    """
+
+    start: Pos4
+    end: Pos4
+    speed_mm_s: float
+    rapid: bool = False
+    speed_percent: float = 100.0
+    extrude_percent: float = 100.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -172,7 +198,7 @@ class Stop:
     unknown: bool = False
 
 
-Op = Union[LinearMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange, Stop]
+Op = Union[LinearMove, FirmwareMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange, Stop]
 
 
 class GcodeLine(NamedTuple):

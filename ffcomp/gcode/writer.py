@@ -49,7 +49,7 @@ from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
-from .records import ArcMove, GcodeLine, LimitsChange, LinearMove, ModeChange
+from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
@@ -202,7 +202,7 @@ class GcodeWriter:
             self.next_line = None
             op = ln.op
             raw = ln.raw if ln.raw.endswith("\n") else ln.raw + "\n"
-            if isinstance(op, (LinearMove, ArcMove)):
+            if isinstance(op, (LinearMove, ArcMove, FirmwareMove)):
                 if ln.lineno not in self.replaced:  # produced no planned motion (zero length)
                     w("; ffcomp (no motion): " + raw)
                 continue
@@ -284,11 +284,7 @@ class GcodeWriter:
                     self._w(f"G1 E{chunk.extrude_de[r]:.5f} F{speed * 60:.3f}\n")
                     self.stats.extrude_moves += 1
                 elif kind == FIRMWARE:  # G10/G11: the firmware makes the move of its own line
-                    src = self._line_iter_next()
-                    if src is None or src.lineno != ln:
-                        raise AssertionError(f"the firmware's extruder move of line {ln} is not next to write")
-                    self._w(src.raw if src.raw.endswith("\n") else src.raw + "\n")
-                    self.stats.extrude_moves += 1
+                    self._firmware_line(ln)
                 else:
                     self._dwell(mv, ln)
             if mv is not None:
@@ -615,6 +611,24 @@ class GcodeWriter:
         v = np.maximum(v, mv.cruise_v_mm_s)
         ch.extrude_v[r] = float(np.round(v[0] * 60, 3) / 60)
         return float(extrude_only_time(de, np.array([ch.extrude_v[r]]), lim.max_e_accel)[0])
+
+    def _firmware_line(self, lineno: int) -> None:
+        """Write source line ``lineno`` (a ``G10``/``G11``), under the source's M220/M221 factors: the
+        output bakes those into its own moves and runs at 100 %, the firmware applies them to its
+        retraction as it would in the source."""
+        src = self._line_iter_next()
+        if src is None or src.lineno != lineno or not isinstance(src.op, FirmwareMove):
+            raise AssertionError(f"the firmware's extruder move of line {lineno} is not next to write")
+        op = src.op
+        wrap = [(f"M220 S{op.speed_percent:g}", "M220 S100") if op.speed_percent != 100.0 else None,
+                (f"M221 S{op.extrude_percent:g}", "M221 S100") if op.extrude_percent != 100.0 else None]
+        wrap = [w for w in wrap if w is not None]
+        for on, _ in wrap:
+            self._w(on + " ; ffcomp: the source's factor, for the firmware's retraction\n")
+        self._w(src.raw if src.raw.endswith("\n") else src.raw + "\n")
+        for _, off in wrap:
+            self._w(off + " ; ffcomp: the output's moves carry the factors\n")
+        self.stats.extrude_moves += 1
 
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
         self._w(f"G4 P{mv.cruise_t_s * 1000:{'.0f' if self.chain is None else '.3f'}}\n")
