@@ -12,10 +12,10 @@ first compensates FILE with that profile and checks the output instead.
 Klipper steps where the commanded extruder position crosses the middle between two step positions;
 the script predicts those times from the plan (one constant offset aligns the two clocks) and prints
 the largest and RMS difference: within Klipper's step compression error (25 us), ffcomp's plan is
-the firmware's timeline.  Klipper runs with its MCU clock estimate held at 0 (a host that keeps ahead
-of the print): in batch mode that estimate follows the wall clock, and a dense output that klippy
-processes slower than it prints would get 0.25 s re-priming gaps no printing host adds.  Not run by
-the tests (CI has no Klipper).  ``benchmarks/data/firmware_retraction.gcode`` exercises G10/G11,
+the firmware's timeline.  Klipper runs without its batch-mode background flush's extra 0.25 s (see
+``main``): with it, a dwell that meets a pause between two chunks of input re-primes the clock 0.25 s
+later, which a printing host whose input keeps ahead never does.  Tested with Klipper of 2026-08-07
+(84104bb).  Not run by the tests (CI has no Klipper).  ``benchmarks/data/firmware_retraction.gcode`` exercises G10/G11,
 SET_RETRACTION and M220/M221.
 """
 
@@ -105,11 +105,26 @@ def main() -> None:
         src = out
     dictionary = kl / "out" / "klipper.dict"
     argv = [str(a.config.resolve()), "-i", str(src), "-o", str(tmp / "out.serial"), "-d", str(dictionary)]
-    # batch mode estimates the MCU's clock from the wall clock: where klippy processes the dense output
-    # slower than it prints, it finds the queue "drained" at a flush and re-primes 0.25 s later
-    # (toolhead BUFFER_TIME_START); a host that keeps ahead, as a printing one must, never does
-    wrapper = ("import sys\nsys.path.insert(0, sys.argv.pop(1))\nimport mcu, klippy\n"
-               "mcu.MCU.estimated_print_time = lambda self, eventtime: 0.0\n"
+    # batch mode's background flush (motion_queuing._flush_handler_debug) runs between chunks of input
+    # and, finding nothing queued, generates steps 0.25 s (BGFLUSH_EXTRA_TIME) past the queue's end, as
+    # a printing host does only when its input runs dry: the next move after a dwell then re-primes
+    # there, 0.25 s late.  The wrapper keeps the handler's batching and drops that extra flush (the
+    # end of the run still flushes everything), so the check sees a host that keeps ahead
+    wrapper = ("import sys\nsys.path.insert(0, sys.argv.pop(1))\nimport klippy\n"
+               "import extras.motion_queuing as mq\n"
+               "def fh(self, eventtime):\n"
+               "    faux, batch, n = self.need_flush_time - 1.5, mq.BGFLUSH_SG_HIGH_TIME - mq.BGFLUSH_SG_LOW_TIME, 0\n"
+               "    while self.last_step_gen_time < faux:\n"
+               "        target = self.last_step_gen_time + batch\n"
+               "        if n > 100 and faux > target:\n"
+               "            target += int((faux - target) / batch) * batch\n"
+               "        self._advance_flush_time(0., target)\n"
+               "        n += 1\n"
+               "    if n:\n"
+               "        return self.reactor.NOW\n"
+               "    self.do_kick_flush_timer = True\n"
+               "    return self.reactor.NEVER\n"
+               "mq.PrinterMotionQueuing._flush_handler_debug = fh\n"
                "sys.argv[0] = 'klippy.py'\nklippy.main()\n")
     subprocess.run([a.python, "-c", wrapper, str(kl / "klippy"), *argv], check=True, capture_output=True)
     dump = subprocess.run([a.python, str(kl / "klippy" / "parsedump.py"), str(dictionary), str(tmp / "out.serial")],
