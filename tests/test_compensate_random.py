@@ -98,3 +98,44 @@ def test_a_z_reversal_on_a_fast_travel_is_judged_at_its_own_time(tmp_path, profi
     src.write_text("G90\nM83\nG1 X11.887 Y18.512 Z1.000 F1200\nG1 Z2.000 F1200\nG1 X0.000 Y0.000 F13064\n")
     s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile, CompensateOptions(predict=False))
     assert s.self_check_max_um < 10.0, s.self_check_max_um  # 50.0 um before (failed)
+
+
+@st.composite
+def files_with_firmware_retraction(draw):
+    """:func:`small_files` with G10/G11 (and now and then SET_RETRACTION) between the moves, paired
+    or not: Klipper ignores a G10 while retracted and a G11 while not."""
+    lines = draw(small_files()).splitlines()
+    head = 3 if "G28" in lines[:3] else 2
+    out = lines[:head + 1]
+    for ln in lines[head + 1:]:
+        for _ in range(draw(st.integers(0, 2))):
+            out.append(draw(st.sampled_from(["G10", "G11", "G10", "G11", "SET_RETRACTION RETRACT_LENGTH=1.5"])))
+        out.append(ln)
+    if draw(st.booleans()):
+        out.append(draw(st.sampled_from(["G10", "G11"])))
+    return "\n".join(out) + "\n"
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(text=files_with_firmware_retraction(), other=st.booleans())
+def test_random_files_with_firmware_retraction_keep_every_g10_g11_in_place(tmp_path, profile, text, other):
+    """With ``[firmware_retraction]`` in the profile every G10/G11 reaches the output once, in the
+    source's order, the self-check passes and the clock holds (never silent drift)."""
+    from ffcomp.profile import FirmwareRetraction
+
+    prof = (_other() if other else profile).with_(firmware_retraction=FirmwareRetraction(0.8, 35.0, 0.1, 25.0))
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    try:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof, CompensateOptions(predict=False))
+    except GcodeError as e:
+        if "no XYZ motion" in str(e):
+            reject()
+        raise
+    fw = [ln for ln in text.splitlines() if ln in ("G10", "G11")]
+    out = [ln for ln in (tmp_path / "o.gcode").read_text().splitlines() if ln in ("G10", "G11")]
+    assert out == fw
+    assert s.commands_stopped == 0 and s.self_check_max_um <= 50
+    assert abs(s.self_check_drift_ms) < 10.0, (text, s.self_check_drift_ms)
+    if abs(s.self_check_drift_ms) > 0.2:
+        assert any(n.startswith("timing:") for n in s.notes)
