@@ -57,11 +57,19 @@ def klipper_max_xy(print_radius_mm: float, delta_radius_mm: float, arm_lengths_m
     return min(cands, key=lambda c: c[0])
 
 
-def _merge(profile: PrinterProfile, geometry: dict, limits: dict, name: str, source: str) -> PrinterProfile:
+def _merge(profile: PrinterProfile, geometry: dict, limits: dict, name: str, source: str,
+           sections: dict | None = None) -> PrinterProfile:
+    """``profile`` with ``geometry`` and ``limits`` values replaced and whole optional ``sections`` set
+    (or removed, where a section's value is None)."""
     d = profile.to_dict()
     d["name"] = name
     d["geometry"].update(geometry)
     d["limits"].update(limits)
+    for key, sec in (sections or {}).items():
+        if sec is None:  # the firmware has no such section
+            d.pop(key, None)
+        else:
+            d[key] = sec
     return profile_from_dict(d, source)
 
 
@@ -200,15 +208,13 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes
                 limits[key + unit] = get("extruder", key)
             elif ratio is not None:
                 limits[key + unit] = toolhead * ratio
-    prof = _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path)
+    sections: dict = {"firmware_retraction": None}  # without the section Klipper has no G10/G11
     if cp.has_section("firmware_retraction"):  # G10/G11 then run as Klipper makes them (its defaults)
-        fr = {f"{k}_mm" if "length" in k else f"{k}_mm_s": get("firmware_retraction", k, dflt)
-              for k, dflt in (("retract_length", 0.0), ("retract_speed", 20.0), ("unretract_extra_length", 0.0),
-                              ("unretract_speed", 10.0))}
-        d = prof.to_dict()
-        d["firmware_retraction"] = fr
-        prof = profile_from_dict(d, path)
-    return prof
+        sections["firmware_retraction"] = {
+            f"{k}_mm" if "length" in k else f"{k}_mm_s": get("firmware_retraction", k, dflt)
+            for k, dflt in (("retract_length", 0.0), ("retract_speed", 20.0), ("unretract_extra_length", 0.0),
+                            ("unretract_speed", 10.0))}
+    return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path, sections)
 
 
 #: a parameter letter and its value: everything up to white space or the next letter that starts a

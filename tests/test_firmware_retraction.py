@@ -188,6 +188,8 @@ def test_profile_section_round_trips_validates_and_imports(tmp_path, profile):
     assert from_klipper_cfg(tmp_path / "printer.cfg").firmware_retraction is not None
     cfg.write_text(KLIPPER)
     assert from_klipper_cfg(cfg).firmware_retraction is None
+    # a base profile's section does not outlive a printer.cfg without one (Klipper then has no G10)
+    assert from_klipper_cfg(cfg, prof).firmware_retraction is None
 
 
 def test_firmware_config_prints_the_section(profile):

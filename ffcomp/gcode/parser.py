@@ -244,7 +244,7 @@ class GcodeParser:
         # Klipper's firmware_retraction: its settings (mm, mm/s) and whether the filament is retracted
         self.firmware_retraction = firmware_retraction if dialect == "klipper" else None
         self.is_retracted = False
-        self.retraction_stops = 0  # G10/G11 lines planned as stops (no settings, or a speed/extrude factor)
+        self.retraction_stops = 0  # G10/G11 lines planned as stops (no settings, or Marlin)
         if self.firmware_retraction is not None:
             fr = self.firmware_retraction
             self._retract = [fr.retract_length_mm, fr.retract_speed_mm_s, fr.unretract_extra_length_mm,
@@ -800,13 +800,13 @@ class GcodeParser:
         return FirmwareMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor, False,
                             self.speed_factor * 6000.0, self.extrude_factor * 100.0)
 
-    def _retraction_stop(self, lineno: int, text: str, why: str = "") -> None:
+    def _retraction_stop(self, lineno: int, text: str) -> None:
         """Count a G10/G11 planned as a stop; the first one is a warning that says what it costs."""
         self.retraction_stops += 1
         if self.retraction_stops > 1:
             return
-        why = why or ("the profile has no [firmware_retraction] section" if self.dialect.name == "klipper"
-                      else "ffcomp times G10/G11 only for Klipper")
+        why = ("the profile has no [firmware_retraction] section" if self.dialect.name == "klipper"
+               else "ffcomp times G10/G11 only for Klipper")
         self._warn(lineno, f"firmware retraction planned as a stop ({why}): at every G10/G11 the compensation "
                    "comes to rest and starts again, and the nozzle stands still for the inverse's settle and "
                    "pre-roll (0.35 s by default) besides the retraction itself; give the profile your "
