@@ -34,6 +34,11 @@ AHEAD_ROUNDS = 3
 BEHIND_ROUNDS = 3
 #: segments that share the wait when a stretch starts ahead of the clock
 AHEAD_SPREAD = 24
+#: rounds of starting a stretch that stays late early instead, and the lateness that calls for it (s)
+ANTICIPATE_ROUNDS = 2
+ANTICIPATE_MIN_S = 1e-4
+#: the share of the stretch's peak lateness it starts early by
+ANTICIPATE_SHARE = 0.5
 #: a segment is never asked to run in less than this share of its intended time (nor the
 #: feed raised beyond 1 / this of the plain length / duration)
 MIN_SHARE = 0.4
@@ -212,6 +217,30 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         if c >= best_cost:
             break
         best, best_cost, best_plan = FC, c, pC
+    # a stretch the limits keep late however fast it is asked to run (a steep corner at
+    # max_z_accel) starts early instead, by up to half its peak: the segments before it run ahead
+    # of the clock, and the largest lateness either way halves; kept only where it falls
+    for _ in range(ANTICIPATE_ROUNDS):
+        t_best = best_plan[0]
+        late_end = late0 + np.cumsum(t_best - D)
+        p = int(np.argmax(late_end))
+        peak = float(late_end[p])
+        if peak < ANTICIPATE_MIN_S:
+            break
+        s = p
+        while s > 0 and late_end[s - 1] > 0.1 * peak:
+            s -= 1
+        a = max(0, s - AHEAD_SPREAD)
+        w = np.where(free[a:s], D[a:s], 0.0)
+        if not w.any():
+            break
+        want = t_best.copy()
+        want[a:s] -= ANTICIPATE_SHARE * peak * w / w.sum()
+        FC = sweeps(best, fast_(np.maximum(want, MIN_SHARE * D)), SWEEPS // 2)
+        pC = plan(FC)
+        if np.max(np.abs(late0 + np.cumsum(pC[0] - D))) >= np.max(np.abs(late_end)) - 1e-6:
+            break
+        best, best_cost, best_plan = FC, cost(pC[0]), pC
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
 
