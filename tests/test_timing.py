@@ -228,20 +228,21 @@ def test_simulate_compare_aligns_a_pre_rolled_output(square_runs, profile):
 
 
 def test_simulate_compare_aligns_each_stretch_between_stops(tmp_path, profile):
-    """A file with stops (a heater wait after the first lift, an M400): the output rests about 0.35 s
-    longer at each (its stream settles and starts again, not a whole number of samples), so one
-    offset for the whole record scored the compensated output at 20,302 um lag-aligned RMS against
-    the plan's 64 um (a 295 mm lift compared 0.35 s apart).  Each stretch between stops is aligned
-    on its own now."""
+    """A file with stops (heater waits before the homing and after the first lift, as a slicer's start
+    G-code has them, and an M400): the output rests about 0.35 s longer at each (its stream settles
+    and starts again, not a whole number of samples), so one offset for the whole record scored the
+    compensated output at 20,302 um lag-aligned RMS against the plan's 64 um (a 295 mm lift compared
+    0.35 s apart).  Each stretch between stops is aligned on its own now; a stop before the first
+    motion (the M190) must not lend the whole record's offset to the first stretch."""
     from ffcomp.pipeline.sim_flow import simulate_gcode
 
-    lines = ["G28", "G1 Z5 F5000", "M109 S200", "G90", "M83", "G1 X-20 Y-20 Z0.3 F9000"]
+    lines = ["M190 S60", "G28", "G1 Z5 F5000", "M109 S200", "G90", "M83", "G1 X-20 Y-20 Z0.3 F9000"]
     lines += ["G1 X20 Y-20 E1 F9000", "G1 X20 Y20 E1", "G1 X-20 Y20 E1", "G1 X-20 Y-20 E1"] * 3
     lines += ["M400", "G1 X0 Y0 Z10 F9000", "G1 X30 Y0 F9000", "G1 X-30 Y0", "G28"]
     src, out = tmp_path / "stops.gcode", tmp_path / "out.gcode"
     src.write_text("\n".join(lines) + "\n")
     s = compensate_file(str(src), str(out), profile, CompensateOptions(predict=False))
-    assert s.commands_stopped == 1  # M109 (M400 is a motion command, but ends the stream as well)
+    assert s.commands_stopped == 2  # M190, M109 (M400 is a motion command, but ends the stream as well)
     rep = simulate_gcode(profile, src, compare=out)
     planned, comp = rep.runs[0].report, rep.runs[-1].report
     assert comp.lag.rms_norm_um < 0.5 * planned.lag.rms_norm_um, (comp.lag.rms_norm_um, planned.lag.rms_norm_um)

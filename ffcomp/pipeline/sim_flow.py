@@ -140,18 +140,22 @@ def _reference_on_other_clock(ref_xyz: np.ndarray, xyz: np.ndarray, cuts, window
 
     The reference is cut at ``cuts`` (sample indices where the machine stands at a stop); each
     stretch with motion gets its own offset (:func:`_offset`, searched within ``window`` samples of
-    where the other record's rest before it begins); a stretch without motion keeps the offset
-    before it.  Where the other record rests longer, the index stays on the stop.
+    where the other record's rest before it begins; the first, from the start of both records); a
+    stretch without motion keeps the offset before it.  Where the other record rests longer, the
+    index stays on the stop.
     """
     n = len(ref_xyz)
     edges = [0] + sorted({int(c) for c in cuts if 0 < int(c) < n}) + [n]
-    phi = float(metrics.time_offset_samples(ref_xyz, xyz, window))  # the whole record's, to start
+    phi = None  # the offset so far (none before the first stretch with motion)
     r = np.full(len(xyz), np.nan)
-    for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+    for a, b in zip(edges[:-1], edges[1:]):
         if np.ptp(ref_xyz[a:b], axis=0).max() > 1e-6:
-            s0 = 0 if i == 0 else a + int(round(phi))
+            s0 = a if phi is None else a + int(round(phi))
             if 0 <= s0 < len(xyz):
-                phi = max(_offset(ref_xyz, xyz, s0, a, b, window), phi if i else -np.inf)
+                found = _offset(ref_xyz, xyz, s0 if phi is not None else 0, a if phi is not None else 0, b, window)
+                phi = found if phi is None else max(found, phi)  # a stop never shortens the rest
+        if phi is None:
+            continue
         j0, j1 = max(int(np.ceil(a + phi - 1e-9)), 0), min(int(np.floor(b - 1 + phi + 1e-9)), len(xyz) - 1)
         if j1 >= j0:
             r[j0:j1 + 1] = np.arange(j0, j1 + 1) - phi
