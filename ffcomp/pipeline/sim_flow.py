@@ -135,8 +135,9 @@ def _offset(ref_xyz: np.ndarray, xyz: np.ndarray, s0: int, a: int, b: int, windo
 
 def _reference_on_other_clock(ref_xyz: np.ndarray, xyz: np.ndarray, cuts, window: int) -> np.ndarray:
     """The reference's (fractional) sample index at every sample of another record (a compensated
-    output), which starts later (its pre-roll) and rests longer at each stop (its stream settles and
-    starts again; not a whole number of samples: the stop falls between two).
+    output; and after its end, should the reference go on), which starts later (its pre-roll) and
+    rests longer at each stop (its stream settles and starts again; not a whole number of samples:
+    the stop falls between two).
 
     The reference is cut at ``cuts`` (sample indices where the machine stands at a stop); each
     stretch with motion gets its own offset (:func:`_offset`, searched within ``window`` samples of
@@ -150,10 +151,10 @@ def _reference_on_other_clock(ref_xyz: np.ndarray, xyz: np.ndarray, cuts, window
     r = np.full(len(xyz), np.nan)
     for a, b in zip(edges[:-1], edges[1:]):
         if np.ptp(ref_xyz[a:b], axis=0).max() > 1e-6:
-            s0 = a if phi is None else a + int(round(phi))
-            if 0 <= s0 < len(xyz):
-                found = _offset(ref_xyz, xyz, s0 if phi is not None else 0, a if phi is not None else 0, b, window)
-                phi = found if phi is None else max(found, phi)  # a stop never shortens the rest
+            if phi is None:  # the first stretch with motion: from the start of both records
+                phi = _offset(ref_xyz, xyz, 0, 0, b, window)
+            elif 0 <= a + int(round(phi)) < len(xyz):  # a stop never shortens the rest
+                phi = max(_offset(ref_xyz, xyz, a + int(round(phi)), a, b, window), phi)
         if phi is None:
             continue
         j0, j1 = max(int(np.ceil(a + phi - 1e-9)), 0), min(int(np.floor(b - 1 + phi + 1e-9)), len(xyz) - 1)
@@ -166,7 +167,9 @@ def _reference_on_other_clock(ref_xyz: np.ndarray, xyz: np.ndarray, cuts, window
         return np.zeros(len(xyz))
     nxt = np.minimum(np.searchsorted(known, np.arange(len(xyz))), known.size - 1)
     fill = np.where(np.arange(len(xyz)) > known[-1], n - 1, np.ceil(r[known[nxt]] - 1e-9))
-    return np.clip(np.where(np.isnan(r), fill, r), 0, n - 1)
+    r = np.clip(np.where(np.isnan(r), fill, r), 0, n - 1)
+    # the other record ended first: the reference's rest goes on, the other standing where it ended
+    return np.concatenate([r, np.arange(int(np.floor(r[-1])) + 1, n, dtype=float)])
 
 
 def _rows_at(a: np.ndarray, r: np.ndarray) -> np.ndarray:
@@ -219,7 +222,8 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
         ref = Trajectory(ref.name, np.arange(len(r)) * dt, _rows_at(ref.xyz_m, r), _rows_at(ref.q_m, r))
         commands = {name: (ref.q_m if name == "planned" else _rows_at(c, r)) for name, c in commands.items()}
         label = Path(compare).name
-        commands[label if label not in commands else f"compare:{label}"] = other.q_m
+        q_other = np.vstack([other.q_m, np.repeat(other.q_m[-1:], max(len(r) - len(other.q_m), 0), axis=0)])
+        commands[label if label not in commands else f"compare:{label}"] = q_other
     return simulate_commands(profile, ref, commands, quantize=quantize)
 
 
