@@ -70,9 +70,12 @@ def import_cmd(
     def mm(v):
         return ", ".join(f"{x:g}" for x in dict.fromkeys(v)) if isinstance(v, tuple) else f"{v:g}"
 
+    fr = prof.firmware_retraction
+    retraction = (f", firmware retraction {fr.retract_length_mm:g} mm at {fr.retract_speed_mm_s:g} mm/s"
+                  if fr is not None else "")
     console.print(f"wrote {output}: arms {mm(g.arm_length_mm)} mm, radius {mm(g.delta_radius_mm)} mm, towers at "
                   f"{mm(g.tower_angles_deg)} deg, print radius {g.print_radius_mm:.2f} mm, planner "
-                  f"{prof.limits.planner}", highlight=False)
+                  f"{prof.limits.planner}{retraction}", highlight=False)
     for n in notes:
         err_console.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True)
 
