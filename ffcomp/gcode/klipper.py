@@ -35,14 +35,13 @@ import math
 from ..errors import GcodeError, KinematicsError
 from .junction import JUNCTION_RULES, klipper_junction_deviation
 from .moves import DWELL, EXTRUDE, FIRMWARE, MOVE, PlannedMove
+from .records import FirmwareMove
 
 __all__ = ["KlipperPlanner", "KlipperDelta", "LOOKAHEAD_FLUSH_TIME", "BUFFER_TIME_HIGH", "SLOW_RATIO"]
 
 LOOKAHEAD_FLUSH_TIME = 0.250
 BUFFER_TIME_HIGH = 2.0
 SLOW_RATIO = 3.0
-#: commands the firmware turns into extruder-only moves of its own (``firmware_retraction``)
-_FIRMWARE_COMMANDS = ("G10", "G11")
 MOTOR_OFF_DWELL_S = 0.1  # DISABLE_STALL_TIME, applied before and after M18/M84
 
 
@@ -262,7 +261,7 @@ class KlipperPlanner:
             accel = 99999999.9
             velocity = speed
             m.is_kin = is_kin = False
-            m.kind = FIRMWARE if line.command in _FIRMWARE_COMMANDS else EXTRUDE
+            m.kind = FIRMWARE if type(line.op) is FirmwareMove else EXTRUDE  # G10/G11 (the parser's call)
         else:
             inv = 1.0 / move_d
             accel = self.max_accel

@@ -797,8 +797,8 @@ class GcodeParser:
         e1 = e0 + de
         self.last_position = [x, y, z, e1]
         self.base_position[3] += de
-        return FirmwareMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor, False,
-                            self.speed_factor * 6000.0, self.extrude_factor * 100.0)
+        return FirmwareMove((x, y, z, e0), (x, y, z, e1), feed * self.speed_factor, self.speed_factor * 6000.0,
+                            self.extrude_factor * 100.0)
 
     def _retraction_stop(self, lineno: int, text: str) -> None:
         """Count a G10/G11 planned as a stop; the first one is a warning that says what it costs."""

@@ -63,8 +63,6 @@ class FirmwareMove(NamedTuple):
         Machine position (x, y, z, e) before and after, mm (only e changes).
     speed_mm_s : float
         The retraction's feed rate with the M220 factor applied, mm/s.
-    rapid : bool
-        Always False (a :class:`LinearMove` field).
     speed_percent, extrude_percent : float
         The M220 and M221 factors in force (percent): the output bakes them into its own moves, so it
         sets them again around this line for the firmware to apply them as it would to the source.
@@ -73,7 +71,6 @@ class FirmwareMove(NamedTuple):
     start: Pos4
     end: Pos4
     speed_mm_s: float
-    rapid: bool = False
     speed_percent: float = 100.0
     extrude_percent: float = 100.0
 
