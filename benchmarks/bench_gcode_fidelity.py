@@ -8,7 +8,10 @@ a zig-zag, pure z travel, a high-flow circle (a 0.8 mm nozzle's 0.15 mm of filam
 lag-aligned and contour RMS of the exact commands and of the G-code as a fraction of the
 uncompensated file's, the kept share of the exact commands' reduction (over the whole file, and
 over the samples where the plan extrudes while it moves: what marks the part), and the largest
-drift of the re-planned output on the absolute clock (ms).  Prints a Markdown table per profile.
+drift of the re-planned output on the absolute clock (ms); then the physical limit (the finest command
+the firmware executes, iterated on the model's own plant: :mod:`ffcomp.compensate.limit`) as the
+same fraction, and how many times its lag-aligned RMS the exact commands and the G-code leave
+(``--no-limit`` skips these columns).  Prints a Markdown table per profile.
 ``--hold-margin-ms M`` adds M ms of rest before every retraction and after every unretraction
 (``CompensateOptions.hold_margin_s``); the reference then includes that rest.
 """
@@ -79,6 +82,14 @@ def _f(x: float) -> str:
     return "-" if x != x else f"{x:.2f}"
 
 
+def _limit_cells(c, none_lag_um: float) -> str:
+    """The physical-limit columns of one row (empty without the limit run)."""
+    if c.limit is None:
+        return ""
+    return (f" {c.limit.lag.rms_norm_um / none_lag_um:.4f} | {c.over_limit('exact'):.2f}x "
+            f"| {c.over_limit('gcode'):.1f}x |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="shorter files")
@@ -96,6 +107,9 @@ def main() -> None:
     ap.add_argument("--profiles", default="default,other_delta")
     ap.add_argument("--hold-margin-ms", type=float, default=None,
                     help="CompensateOptions.hold_margin_s in ms (rest added around retractions)")
+    ap.add_argument("--no-limit", action="store_true",
+                    help="skip the physical-limit columns (the limit's commands cost about 1.5 s of CPU per "
+                         "second of motion)")
     ap.add_argument("--tol-um", type=float, default=None,
                     help="CompensateOptions.tol_um (the writer's point placement tolerance, default 5)")
     a = ap.parse_args()
@@ -125,9 +139,10 @@ def main() -> None:
         if pname not in a.profiles.split(","):
             continue
         print(f"\n### {pname}\n")
+        lim_head = "" if a.no_limit else " limit lag | exact / limit | G-code / limit |"
         print("| file | exact lag | G-code lag | exact contour | G-code contour | kept lag | kept contour "
-              "| kept lag, extruding | kept contour, extruding | drift max (ms) |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+              "| kept lag, extruding | kept contour, extruding | drift max (ms) |" + lim_head)
+        print("|---|---|---|---|---|---|---|---|---|---|" + ("" if a.no_limit else "---|---|---|"))
         for name, text in files(a.quick).items():
             if a.only and a.only not in name:
                 continue
@@ -136,7 +151,8 @@ def main() -> None:
             try:
                 c = check_gcode_output(prof, src, tmp / "out.gcode", plant_profile=truth,
                                        opts=CompensateOptions(predict=False, self_check_tol_um=1e9,
-                                                              self_check_drift_ms=1e9, **extra))
+                                                              self_check_drift_ms=1e9, **extra),
+                                       limit=not a.no_limit)
             except Exception as e:  # a failing case is a row, not the end of the table
                 print(f"| {name} | failed: {type(e).__name__}: {str(e)[:80]} |||||||||")
                 continue
@@ -146,7 +162,7 @@ def main() -> None:
                   f"| {e.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | "
                   f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
                   f"{c.kept('contour'):.2f} | {_f(c.kept_extruding('lag'))} | {_f(c.kept_extruding('contour'))} "
-                  f"| {c.summary.self_check_drift_ms:+.3f} |", flush=True)
+                  f"| {c.summary.self_check_drift_ms:+.3f} |" + _limit_cells(c, nl), flush=True)
         if a.drift_file:
             print("\n| file | drift max (ms) | at (s) | self-check max (um) |\n|---|---|---|---|")
         for f in a.drift_file:

@@ -30,6 +30,23 @@ def test_gcode_output_keeps_90_percent_of_the_ideal_reduction(square_file, profi
     assert abs(chk.drift_s) < 1e-3  # the firmware's re-planned output keeps the intended timing
 
 
+def test_output_check_reports_the_distance_from_the_physical_limit(square_file, profile):
+    """The physical-limit run of the output check (the fidelity bench's limit columns): the limit's
+    commands for the same path leave less than the default's exact commands, which stay within a
+    few times of it (README: 2.3-4.3x on the bench), and the G-code within its own, larger factor."""
+    chk = check_gcode_output(profile, square_file, square_file.parent / "square100_limit.gcode", limit=True)
+    lim, exact, none = chk.limit, chk.exact, chk.none
+    assert lim is not None
+    assert lim.lag.rms_norm_um < 0.01 * none.lag.rms_norm_um
+    assert lim.lag.rms_norm_um <= exact.lag.rms_norm_um
+    assert 1.0 <= chk.over_limit("exact") < 6.0, chk.over_limit("exact")
+    assert chk.over_limit("gcode") == pytest.approx(chk.gcode.lag.rms_norm_um / lim.lag.rms_norm_um)
+    assert chk.over_limit("gcode") >= 0.9 * chk.over_limit("exact")
+    assert chk.over_limit("exact", "contour") == pytest.approx(exact.contour.rms_norm_um / lim.contour.rms_norm_um)
+    # without the limit run nothing is invented
+    assert np.isnan(check_gcode_output(profile, square_file, square_file.parent / "sq_nolimit.gcode").over_limit())
+
+
 def test_bench_criteria_on_the_simulator(profile):
     """Issue 5's bench criteria, deterministic, on the quick bench cases (the README has the full bench)."""
     from ffcomp.sim.bench import run_bench

@@ -2,7 +2,9 @@
 
 Plans and samples a source file, inverts it in memory (the exact commands), compensates it to
 G-code, re-plans and samples that output as the firmware would, and simulates all three command
-sets (none, exact, G-code) on the nonlinear plant against the source's planned path.
+sets (none, exact, G-code) on the nonlinear plant against the source's planned path; optionally
+also the physical limit's commands for the same path (:func:`ffcomp.compensate.limit.limit_commands`),
+so that every row can say how far it sits from what the model allows.
 """
 
 from __future__ import annotations
@@ -31,7 +33,9 @@ class OutputCheck:
     (the rest added before and after included in both).  ``extruding`` holds the same three runs'
     lag-aligned and contour RMS (um) over the samples where the plan extrudes while it moves (what
     marks the part), as ``{"none": (lag, contour), "exact": ..., "gcode": ...}``; empty when the
-    file does not extrude.
+    file does not extrude.  ``limit``: the physical limit's report (the same path, the finest
+    command the firmware executes, iterated on the model's own plant), or None when not asked for;
+    ``extruding`` then holds its ``"limit"`` entry too.
     """
 
     none: ErrorReport
@@ -40,6 +44,14 @@ class OutputCheck:
     summary: CompensationSummary
     drift_s: float
     extruding: dict
+    limit: ErrorReport | None = None
+
+    def over_limit(self, run: str = "gcode", metric: str = "lag") -> float:
+        """How many times the physical limit's RMS ``run`` (``"exact"`` or ``"gcode"``) leaves, for
+        ``metric`` (``"lag"`` or ``"contour"``); NaN without the limit."""
+        if self.limit is None:
+            return float("nan")
+        return getattr(getattr(self, run), metric).rms_norm_um / max(getattr(self.limit, metric).rms_norm_um, 1e-12)
 
     def kept(self, metric: str = "lag") -> float:
         """Share of the exact commands' RMS reduction the G-code output keeps."""
@@ -55,12 +67,15 @@ class OutputCheck:
         return (n - g) / (n - e)
 
 
-def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=None, opts=None) -> OutputCheck:
+def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=None, opts=None,
+                       limit: bool = False) -> OutputCheck:
     """Compensate ``src`` into ``out`` and judge the output on the simulator (single stream files).
 
     ``plant_profile``: the printer simulated (default ``profile``; e.g. the "true" dynamics of an
-    identified profile); ``opts``: :class:`CompensateOptions` of the run.  The summary carries the
-    self-check's drift on the absolute clock (``self_check_drift_ms``).
+    identified profile); ``opts``: :class:`CompensateOptions` of the run; ``limit``: also run the
+    physical limit's commands for the same path (computed for ``profile``'s model, as the exact
+    commands are; about 1.5 s of CPU per second of motion).  The summary carries the self-check's
+    drift on the absolute clock (``self_check_drift_ms``).
     """
     from ..gcode.start import resolve_start
 
@@ -87,11 +102,20 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True,
                                      start_position_mm=start)).q_m[:len(q)]
     got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
-    sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack([q, ideal, got]), hold="linear")
+    runs = [q, ideal, got]
+    if limit:
+        from ..compensate.limit import limit_commands
+
+        runs.append(limit_commands(LpvModel.from_profile(profile), q, X, dt).q_cmd)
+    sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack(runs), hold="linear")
     # extruding while moving: E rises over the sample and the nozzle moves faster than 1 mm/s
     speed = np.linalg.norm(np.gradient(X, axis=0), axis=1) / dt
     ext = (np.gradient(e) > 1e-6) & (speed > 1e-3)
-    (none, n_ex), (exact, e_ex), (gcode, g_ex) = (evaluate_masked(t, X, sim.xyz_m[r], ext) for r in range(3))
+    reps = [evaluate_masked(t, X, sim.xyz_m[r], ext) for r in range(len(runs))]
+    (none, n_ex), (exact, e_ex), (gcode, g_ex) = reps[:3]
     extruding = {"none": n_ex, "exact": e_ex, "gcode": g_ex} if ext.any() else {}
+    if limit and ext.any():
+        extruding["limit"] = reps[3][1]
     intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
-    return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding)
+    return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding,
+                       reps[3][0] if limit else None)
