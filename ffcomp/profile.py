@@ -22,7 +22,8 @@ Sections
     ``max_extrude_only_velocity_mm_s``, ``max_extrude_only_accel_mm_s2``, the compensated command's bounds
     ``max_carriage_velocity_mm_s``, ``max_carriage_accel_mm_s2``, ``max_correction_mm``, ``planner`` (``"klipper"`` or
     ``"marlin"``), ``steps_per_mm`` (microsteps included),
-    ``microsteps``, ``sample_rate_hz``.
+    ``microsteps``, ``sample_rate_hz``, ``arc_resolution_mm`` (the chord length G2/G3 arcs are split
+    into: Klipper's ``[gcode_arcs] resolution``, default 1 mm; at least 0.01 mm).
 ``[dynamics]``
     Carriage sub-model (scalar, or 3 values for per-tower parameters): ``m`` (kg), ``c`` (belt
     damping, N s/m), ``b`` (guide friction, N s/m), ``k`` (belt stiffness, N/m), electrical
@@ -120,6 +121,9 @@ class Limits:
     steps_per_mm: float = 80.0
     microsteps: int = 16
     sample_rate_hz: float = 1000.0
+    #: the firmware's arc chord length (Klipper ``[gcode_arcs] resolution``): G2/G3 are planned as the
+    #: chords the firmware makes of them, and the compensated output keeps that path
+    arc_resolution_mm: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -272,6 +276,7 @@ _RULES: dict[str, dict[str, dict]] = {
         "steps_per_mm": {"positive": True},
         "microsteps": {"positive": True},
         "sample_rate_hz": {"lo": 100.0, "hi": 100000.0},
+        "arc_resolution_mm": {"lo": 0.01},
     },
     "dynamics": {
         "m": {"positive": True},

@@ -208,6 +208,8 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes
                 limits[key + unit] = get("extruder", key)
             elif ratio is not None:
                 limits[key + unit] = toolhead * ratio
+    # the chords Klipper makes of G2/G3 (without the section Klipper refuses them; its default then)
+    limits["arc_resolution_mm"] = get("gcode_arcs", "resolution", 1.0)
     sections: dict = {"firmware_retraction": None}  # without the section Klipper has no G10/G11
     if cp.has_section("firmware_retraction"):  # G10/G11 then run as Klipper makes them (its defaults)
         sections["firmware_retraction"] = {

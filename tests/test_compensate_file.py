@@ -101,3 +101,35 @@ def test_step_streams_reconstruct_within_half_a_step(capsys, tmp_path, profile, 
     assert stream.n_steps() == d["steps"]
     pos = positions_from_steps(stream, np.array([0.0, 1e9]))
     assert np.all(np.isfinite(pos))
+
+
+def test_arcs_are_compensated_along_the_firmwares_chords(tmp_path, profile):
+    """G2/G3 are planned as the chords the firmware makes of them (the profile's
+    ``limits.arc_resolution_mm``, Klipper's ``[gcode_arcs] resolution``), and the written output keeps
+    that path: with 0.1 mm chords the re-planned output hugs a 3 mm circle, with Klipper's default
+    1 mm it keeps the facets (sagitta 1/(8*3) mm = 42 um) the firmware would have printed."""
+    from dataclasses import replace
+
+    from ffcomp.gcode.sampler import concat_blocks, sample_gcode
+    from ffcomp.gcode.start import resolve_start
+    from ffcomp.pipeline.options import CompensateOptions
+
+    src = tmp_path / "arc.gcode"
+    src.write_text("G90\nSET_VELOCITY_LIMIT ACCEL=1000\nG1 X3 Y0 Z5 F600\nG4 P200\n"
+                   "G2 X-3 Y0 I-3 J0 F600\nG2 X3 Y0 I3 J0\nG4 P200\n")
+    dev, chords = {}, {}
+    for res in (1.0, 0.1):
+        prof = replace(profile, limits=replace(profile.limits, arc_resolution_mm=res))
+        chords[res] = sum(mv.kind == "move" for mv in GcodePlan(str(src), prof))
+        out = tmp_path / f"arc_{res}.gcode"
+        s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False))
+        assert s.self_check_max_um < 20
+        start = resolve_start(str(src), prof).position_mm
+        xyz = concat_blocks(sample_gcode(str(out), prof, overlap=0, lenient=True, start_position_mm=start)).xyz_m
+        r_mm = np.hypot(xyz[:, 0], xyz[:, 1]) * 1e3
+        on = np.abs(r_mm - 3.0) < 0.2  # the samples on the circle (the start point too)
+        assert on.sum() > 1500  # two half circles of 9.4 mm at 10 mm/s
+        dev[res] = float(np.max(np.abs(r_mm[on] - 3.0)))
+    assert chords[0.1] > 8 * chords[1.0]
+    assert dev[1.0] > 0.035, dev  # the 1 mm chords' facets
+    assert dev[0.1] < 0.008, dev  # 0.4 um facets, plus the point tolerance

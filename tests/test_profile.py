@@ -114,6 +114,39 @@ def test_klipper_import(tmp_path):
     assert lim.steps_per_mm == pytest.approx(200 * 32 / 40)
 
 
+def test_klipper_import_reads_the_arc_resolution(tmp_path):
+    """``[gcode_arcs] resolution`` is the chord length Klipper splits G2/G3 into; without the section
+    (Klipper then refuses arcs) the profile carries Klipper's default, not the base profile's value."""
+    from dataclasses import replace
+
+    from ffcomp.profile import default_profile
+
+    p = tmp_path / "printer.cfg"
+    p.write_text(KLIPPER.replace("[stepper_a]", "[gcode_arcs]\nresolution: 0.1\n\n[stepper_a]"))
+    assert from_klipper_cfg(p).limits.arc_resolution_mm == 0.1
+    p.write_text(KLIPPER)
+    base = default_profile()
+    base = replace(base, limits=replace(base.limits, arc_resolution_mm=0.25))
+    assert from_klipper_cfg(p, base).limits.arc_resolution_mm == 1.0
+    p.write_text(KLIPPER.replace("[stepper_a]", "[gcode_arcs]\nresolution: fine\n\n[stepper_a]"))
+    with pytest.raises(ProfileError, match="resolution.*fine"):
+        from_klipper_cfg(p)
+
+
+def test_arc_resolution_is_checked(tmp_path):
+    from ffcomp.profile import default_profile, save_profile
+
+    path = tmp_path / "p.toml"
+    save_profile(default_profile(), path)
+    text = path.read_text()
+    assert "arc_resolution_mm = 1.0" in text
+    path.write_text(text.replace("arc_resolution_mm = 1.0", "arc_resolution_mm = 0.001"))
+    with pytest.raises(ProfileError, match="arc_resolution_mm"):
+        load_profile(path)
+    path.write_text(text.replace("arc_resolution_mm = 1.0", "arc_resolution_mm = 0.2"))
+    assert load_profile(path).limits.arc_resolution_mm == 0.2
+
+
 def test_klipper_import_errors(tmp_path):
     p = tmp_path / "printer.cfg"
     p.write_text(KLIPPER.replace("kinematics: delta", "kinematics: corexy"))

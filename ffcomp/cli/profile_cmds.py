@@ -75,7 +75,8 @@ def import_cmd(
                   if fr is not None else "")
     console.print(f"wrote {output}: arms {mm(g.arm_length_mm)} mm, radius {mm(g.delta_radius_mm)} mm, towers at "
                   f"{mm(g.tower_angles_deg)} deg, print radius {g.print_radius_mm:.2f} mm, planner "
-                  f"{prof.limits.planner}{retraction}", highlight=False)
+                  f"{prof.limits.planner}, arc chords {prof.limits.arc_resolution_mm:g} mm{retraction}",
+                  highlight=False)
     for n in notes:
         err_console.print(f"[yellow]note:[/] {escape(n)}", highlight=False, soft_wrap=True)
 

@@ -164,8 +164,8 @@ class GcodePlan:
         Malformed lines become counted warnings instead of errors.
     firmware : str, optional
         Planner (and G-code dialect) name; default ``profile.limits.planner``.
-    arc_resolution_mm : float
-        Klipper ``[gcode_arcs] resolution``.
+    arc_resolution_mm : float, optional
+        Klipper ``[gcode_arcs] resolution``; default the profile's ``limits.arc_resolution_mm``.
     start_position_mm : (x, y, z, e), optional
         Position before the first line (the machine is assumed homed there).  Default: for a file,
         where :func:`ffcomp.gcode.start.resolve_start` puts it (home if the file homes first, else the
@@ -181,7 +181,7 @@ class GcodePlan:
     """
 
     def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
-                 arc_resolution_mm: float = 1.0, start_position_mm=None,
+                 arc_resolution_mm: float | None = None, start_position_mm=None,
                  path: str | None = None, unknown_policy: str = "stop", **planner_kw):
         self.profile = profile
         self.firmware = firmware or profile.limits.planner
@@ -195,6 +195,8 @@ class GcodePlan:
             else:
                 start_position_mm = (0.0, 0.0, 0.0, 0.0)
         pkw = {} if path is None else {"path": path}
+        if arc_resolution_mm is None:
+            arc_resolution_mm = profile.limits.arc_resolution_mm
         self.parser: GcodeParser = parse_gcode(
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
             home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm,

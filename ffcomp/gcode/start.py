@@ -95,6 +95,7 @@ def resolve_start(src: str, profile, start_mm=None, *, dialect: str | None = Non
         start_mm, origin = profile.start_position_mm, "profile"
     base = tuple(float(v) for v in start_mm) if start_mm is not None else (0.0, 0.0, 0.0)
     p = parse_gcode(src, lenient=True, dialect=dialect or profile.limits.planner, home_position_mm=home,
+                    arc_resolution_mm=profile.limits.arc_resolution_mm,
                     start_position_mm=(*base, 0.0), unknown_policy="pass")
     for _ in p:
         if p.first_home_line is not None or p.first_motion_line is not None:

@@ -257,6 +257,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     with _open_existing(body_path, "w") as body, _open_existing(qfile, "wb") as qf, \
             _open_existing(segfile, "wb") as sf:
         lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
+                                 arc_resolution_mm=plan.parser.arc_resolution_mm,
                                  home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm),
                                  start_position_mm=start.position_mm, unknown_policy=opts.unknown_policy,
                                  firmware_retraction=profile.firmware_retraction))
