@@ -2,12 +2,14 @@
 every extruder step with the time ffcomp's firmware-faithful plan crosses that step.
 
 Run: ``python benchmarks/klipper_steps.py FILE.gcode --klipper PATH [--python PY] [--config CFG]
-[--compensate]``.  ``PATH`` is a Klipper checkout with ``out/klipper.dict`` built for the Linux MCU
+[--compensate] [--carriages]``.  ``PATH`` is a Klipper checkout with ``out/klipper.dict`` built for the Linux MCU
 (``echo CONFIG_MACH_LINUX=y > .config && make olddefconfig && make``); ``PY`` a Python with Klipper's
 requirements (``cffi greenlet jinja2 pyserial markupsafe``).  ``CFG`` (default
 ``benchmarks/data/klipper_linux_delta.cfg``, with a ``[firmware_retraction]``) is imported as the ffcomp
 profile (``ffcomp profile import --klipper``), so both sides run the same printer.  ``--compensate``
-first compensates FILE with that profile and checks the output instead.
+first compensates FILE with that profile and checks the output instead; ``--carriages`` compares the
+three carriages' steps too (on the extruder's clock offset), which is where a firmware input shaper
+left on under a compensated file would show (``benchmarks/data/klipper_linux_delta_shaper.cfg`` has one).
 
 Klipper steps where the commanded extruder position crosses the middle between two step positions;
 the script predicts those times from the plan (one constant offset aligns the two clocks) and prints
@@ -23,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 import subprocess
 import sys
 import tempfile
@@ -84,6 +87,60 @@ def planned_e_steps(moves, step_mm: float) -> np.ndarray:
     return np.array(out)
 
 
+def planned_carriage_steps(moves, geom, step_m: float, q_home_m: np.ndarray, fs_hz: float = 100_000.0
+                           ) -> list[np.ndarray]:
+    """Times (s) at which each planned carriage crosses a half-step boundary of the lattice through
+    its homed height ``q_home_m`` (Klipper's: the stepper position set at homing, then whole steps),
+    for the XYZ moves of ``moves``; the carriage heights are sampled at ``fs_hz`` within each move
+    and the crossings interpolated linearly (the carriage path is smooth: well under 1 us of error)."""
+    from ffcomp.kinematics import inverse
+
+    out: list[list[float]] = [[], [], []]
+    for m in moves:
+        if m.kind != "move":
+            continue
+        n = max(2, int(math.ceil(m.duration_s * fs_hz)) + 1)
+        tt = np.linspace(0.0, m.duration_s, n)
+        s = np.array([_distance_at(m, t) for t in tt])
+        xyz = (np.asarray(m.start_mm[:3]) + np.outer(s, m.unit[:3])) * 1e-3
+        q = (inverse(geom, xyz) - q_home_m) / step_m - 0.5  # crossings at whole numbers
+        for i in range(3):
+            k0, k1 = np.floor(q[:-1, i]), np.floor(q[1:, i])
+            for j in np.nonzero(k0 != k1)[0]:
+                lo, hi = sorted((k0[j], k1[j]))
+                for level in np.arange(lo + 1, hi + 1):  # every lattice line between the two samples
+                    f = (level - q[j, i]) / (q[j + 1, i] - q[j, i])
+                    out[i].append(m.t_start_s + tt[j] + f * (tt[j + 1] - tt[j]))
+    return [np.array(sorted(o)) for o in out]
+
+
+def _compare(name: str, kt: np.ndarray, pt: np.ndarray, offset: float | None = None) -> float:
+    """Print how Klipper's step times ``kt`` and the plan's ``pt`` differ; returns the clock offset.
+
+    Equal counts are compared step by step.  Otherwise (``offset`` given) each planned step is paired
+    with the nearest of Klipper's within 0.5 ms and the unpaired ones are counted: Klipper's step search
+    can pass over a carriage that crosses a step boundary and comes back within a fraction of a
+    millisecond (a pair of steps the plan has and the firmware does not make)."""
+    print(f"{name} steps: Klipper {len(kt)}, ffcomp's plan {len(pt)}")
+    if not len(kt) or not len(pt) or (len(kt) != len(pt) and offset is None):
+        print(f"  the step counts differ: the plans do not move {name} alike")
+        return float("nan") if offset is None else offset
+    off = float(np.median(kt - pt)) if offset is None else offset
+    if len(kt) == len(pt):
+        res = (kt - pt - off) * 1e6
+    else:
+        j = np.clip(np.searchsorted(kt, pt + off), 1, len(kt) - 1)
+        j = np.where(np.abs(kt[j - 1] - pt - off) < np.abs(kt[j] - pt - off), j - 1, j)
+        d = kt[j] - pt - off
+        ok = np.abs(d) < 5e-4
+        res = d[ok] * 1e6
+        print(f"  paired {int(ok.sum())} steps within 0.5 ms; unpaired: {int((~ok).sum())} of the plan's, "
+              f"{len(kt) - len(np.unique(j[ok]))} of Klipper's")
+    print(f"  step time difference after one clock offset: max {np.abs(res).max():.2f} us, "
+          f"RMS {np.sqrt(np.mean(res ** 2)):.2f} us")
+    return off
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("gcode", type=Path)
@@ -91,6 +148,8 @@ def main() -> None:
     ap.add_argument("--python", default=sys.executable, help="Python with Klipper's requirements")
     ap.add_argument("--config", type=Path, default=ROOT / "benchmarks/data/klipper_linux_delta.cfg")
     ap.add_argument("--compensate", action="store_true", help="check FILE's compensated output instead")
+    ap.add_argument("--carriages", action="store_true",
+                    help="also compare the three carriages' steps (the file must home first: G28)")
     a = ap.parse_args()
     kl, tmp = a.klipper.resolve(), Path(tempfile.mkdtemp(prefix="klipper_steps_"))
     prof = from_klipper_cfg(a.config)
@@ -104,7 +163,18 @@ def main() -> None:
               f"{s.firmware_retractions} G10/G11 timed as the firmware's moves")
         src = out
     dictionary = kl / "out" / "klipper.dict"
-    argv = [str(a.config.resolve()), "-i", str(src), "-o", str(tmp / "out.serial"), "-d", str(dictionary)]
+    k_src = src
+    if a.carriages:
+        # batch mode's homing never triggers an endstop: its moves run their full length, and with an
+        # [input_shaper] their drip moves overlap the print's first moves on the steppers' clock.  Klipper
+        # gets the homed position set directly instead (the plan homes in no time to the same place)
+        k_src = tmp / "klipper_input.gcode"
+        home = f"SET_KINEMATIC_POSITION X=0 Y=0 Z={prof.geometry.z_max_mm:g} ; was: "
+        with open(src, encoding="utf-8", errors="surrogateescape") as fi, \
+                open(k_src, "w", encoding="utf-8", errors="surrogateescape") as fo:
+            for ln in fi:
+                fo.write(home + ln if ln.split(";")[0].strip().upper() == "G28" else ln)
+    argv = [str(a.config.resolve()), "-i", str(k_src), "-o", str(tmp / "out.serial"), "-d", str(dictionary)]
     # batch mode's background flush (motion_queuing._flush_handler_debug) runs between chunks of input
     # and, finding nothing queued, generates steps 0.25 s (BGFLUSH_EXTRA_TIME) past the queue's end, as
     # a printing host does only when its input runs dry: the next move after a dwell then re-primes
@@ -141,14 +211,23 @@ def main() -> None:
     cp.read(a.config)
     step_mm = cp.getfloat("extruder", "rotation_distance") / (
         cp.getint("extruder", "microsteps") * cp.getint("extruder", "full_steps_per_rotation", fallback=200))
-    pt = planned_e_steps(list(GcodePlan(str(src), prof)), step_mm)
-    print(f"extruder steps: Klipper {len(kt)}, ffcomp's plan {len(pt)}")
-    if len(kt) != len(pt) or not len(kt):
-        raise SystemExit("the step counts differ: the plans do not move the extruder alike")
-    off = float(np.median(kt - pt))
-    res = (kt - pt - off) * 1e6
-    print(f"step time difference after one clock offset: max {np.abs(res).max():.2f} us, "
-          f"RMS {np.sqrt(np.mean(res ** 2)):.2f} us")
+    moves = list(GcodePlan(str(src), prof))
+    off = _compare("extruder", kt, planned_e_steps(moves, step_mm))
+    if a.carriages:  # the same clock offset: one timeline for every stepper
+        from ffcomp.kinematics import inverse
+
+        geom = prof.geometry_si()
+        q_home = inverse(geom, np.array([0.0, 0.0, prof.geometry.z_max_mm * 1e-3]))
+        c_step = 1e-3 / prof.limits.steps_per_mm
+        planned = planned_carriage_steps(moves, geom, c_step, q_home)
+        for i, t in enumerate("abc"):
+            pin = cp.get(f"stepper_{t}", "step_pin").strip()
+            oid = next(int(o) for o, ln in cfg.items() if re.search(rf"step_pin=(\S*/)?{pin} ", ln + " "))
+            kt_i = klipper_step_times(dump, oid, clock)
+            if len(planned[i]):  # only the plan's span: Klipper's homing moves (a G28 takes no time in
+                # the plan) come before it, and after it where the file homes again at its end
+                kt_i = kt_i[(kt_i >= planned[i][0] + off - 1e-3) & (kt_i <= planned[i][-1] + off + 1e-3)]
+            _compare(f"stepper_{t}", kt_i, planned[i], off)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,12 @@ Sections
     ``retract_speed_mm_s``, ``unretract_extra_length_mm``, ``unretract_speed_mm_s`` (Klipper's defaults
     0, 20, 0, 10 for the keys not given).  With it, ``G10``/``G11`` are timed as the extruder-only moves
     the firmware makes of them; without it they are stops (:mod:`ffcomp.gcode.commands`).
+``[input_shaper]``
+    Optional: the printer's Klipper ``[input_shaper]`` values, ``shaper_type_x``, ``shaper_type_y``
+    (``zv``, ``mzv``, ``zvd``, ``ei``, ``2hump_ei``, ``3hump_ei``; Klipper's default ``mzv``),
+    ``shaper_freq_x_hz``, ``shaper_freq_y_hz`` (0: off), ``damping_ratio_x``, ``damping_ratio_y``
+    (default 0.1).  A compensated file switches the firmware's input shaping off (the compensation
+    is the shaping: a shaper on top smears it); with this section it switches it back on at its end.
 ``[[effects]]``
     Optional physical effects beyond the paper's model: ``name`` plus that effect's parameters.
 """
@@ -57,6 +63,8 @@ __all__ = [
     "Limits",
     "Dynamics",
     "FirmwareRetraction",
+    "InputShaper",
+    "SHAPER_TYPES",
     "PrinterProfile",
     "load_profile",
     "default_profile",
@@ -158,6 +166,29 @@ class FirmwareRetraction:
     unretract_speed_mm_s: float = 10.0
 
 
+#: Klipper's input shaper names (``klippy/extras/shaper_defs.py``)
+SHAPER_TYPES = ("zv", "mzv", "zvd", "ei", "2hump_ei", "3hump_ei")
+
+
+@dataclass(frozen=True)
+class InputShaper:
+    """Klipper's ``[input_shaper]`` (its defaults): what the printer shapes X and Y with when no
+    compensated file is running (a compensated file switches it off and, with these values, back on)."""
+
+    shaper_type_x: str = "mzv"
+    shaper_type_y: str = "mzv"
+    shaper_freq_x_hz: float = 0.0
+    shaper_freq_y_hz: float = 0.0
+    damping_ratio_x: float = 0.1
+    damping_ratio_y: float = 0.1
+
+    def klipper_command(self) -> str:
+        """The ``SET_INPUT_SHAPER`` line that restores these values."""
+        return (f"SET_INPUT_SHAPER SHAPER_TYPE_X={self.shaper_type_x} SHAPER_FREQ_X={self.shaper_freq_x_hz:g} "
+                f"DAMPING_RATIO_X={self.damping_ratio_x:g} SHAPER_TYPE_Y={self.shaper_type_y} "
+                f"SHAPER_FREQ_Y={self.shaper_freq_y_hz:g} DAMPING_RATIO_Y={self.damping_ratio_y:g}")
+
+
 _PER_TOWER = {"arm_length_mm", "delta_radius_mm", "tower_angles_deg", "m", "c", "b", "k", "d0", "d1", "d2"}
 
 
@@ -178,6 +209,9 @@ class PrinterProfile:
         File the profile was loaded from (for error messages).
     firmware_retraction : FirmwareRetraction or None
         Optional section: the firmware's G10/G11 settings (None: G10/G11 are stops).
+    input_shaper : InputShaper or None
+        Optional section: the firmware's input shaper, restored at the end of a compensated file
+        (None: the file switches shaping off and leaves it off).
     start_position_mm : (x, y, z) or None
         Optional top-level key: where the toolhead stands when a file that moves before any G28
         starts (e.g. where the printer's ``PRINT_START`` macro leaves it); ``--start`` overrides it.
@@ -191,6 +225,7 @@ class PrinterProfile:
     source: str | None = None
     start_position_mm: tuple | None = None
     firmware_retraction: FirmwareRetraction | None = None
+    input_shaper: InputShaper | None = None
 
     def geometry_si(self) -> DeltaGeometry:
         return self.geometry.to_si()
@@ -215,6 +250,8 @@ class PrinterProfile:
             d["start_position_mm"] = list(self.start_position_mm)
         if self.firmware_retraction is not None:
             d["firmware_retraction"] = asdict(self.firmware_retraction)
+        if self.input_shaper is not None:
+            d["input_shaper"] = asdict(self.input_shaper)
         return d
 
 
@@ -297,9 +334,16 @@ _RULES: dict[str, dict[str, dict]] = {
         "unretract_extra_length_mm": {"nonneg": True},
         "unretract_speed_mm_s": {"lo": 1.0},
     },
+    # Klipper's: frequencies >= 0 (0: off), damping ratios in [0, 1)
+    "input_shaper": {
+        "shaper_freq_x_hz": {"nonneg": True},
+        "shaper_freq_y_hz": {"nonneg": True},
+        "damping_ratio_x": {"nonneg": True, "hi": 0.99},
+        "damping_ratio_y": {"nonneg": True, "hi": 0.99},
+    },
 }
 _CLASSES = {"geometry": Geometry, "limits": Limits, "dynamics": Dynamics,
-            "firmware_retraction": FirmwareRetraction}
+            "firmware_retraction": FirmwareRetraction, "input_shaper": InputShaper}
 
 #: the profile format version this ffcomp reads and writes (top-level ``ffcomp_profile``)
 PROFILE_VERSION = 1
@@ -331,6 +375,10 @@ def _section(raw: dict, sec: str, source) -> Any:
             if v not in PLANNERS:
                 raise ProfileError("limits.planner", v, f"must be one of {PLANNERS}", source)
             kw[key] = v
+        elif sec == "input_shaper" and key.startswith("shaper_type_"):
+            if not isinstance(v, str) or v.lower() not in SHAPER_TYPES:
+                raise ProfileError(f"input_shaper.{key}", v, f"must be one of {', '.join(SHAPER_TYPES)}", source)
+            kw[key] = v.lower()
         elif sec == "limits" and key == "microsteps":
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ProfileError("limits.microsteps", v, "must be a positive integer", source)
@@ -422,7 +470,7 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
     if not isinstance(raw, dict):
         raise ProfileError("<root>", raw, "expected a table", source)
     allowed = {"name", "geometry", "limits", "dynamics", "effects", "ffcomp_profile", "start_position_mm",
-               "firmware_retraction"}
+               "firmware_retraction", "input_shaper"}
     for key in raw:
         if key not in allowed:
             raise ProfileError(key, raw[key], f"unknown top-level key (known: {', '.join(sorted(allowed))})",
@@ -448,9 +496,10 @@ def profile_from_dict(raw: dict, source: str | None = None) -> PrinterProfile:
             raise ProfileError(f"effects[{i}].name", e.get("name"), "each effect needs a string name", source)
     start = _start_position(raw.get("start_position_mm"), geometry, source)
     retraction = _section(raw, "firmware_retraction", source) if "firmware_retraction" in raw else None
+    shaper = _section(raw, "input_shaper", source) if "input_shaper" in raw else None
     prof = PrinterProfile(name=name, geometry=geometry, limits=limits, dynamics=dynamics,
                           effects=tuple(dict(e) for e in effects), source=source, start_position_mm=start,
-                          firmware_retraction=retraction)
+                          firmware_retraction=retraction, input_shaper=shaper)
     if effects:
         from .model.effects import validate_effects  # effects know their own parameters
 

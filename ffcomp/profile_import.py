@@ -216,6 +216,16 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes
             f"{k}_mm" if "length" in k else f"{k}_mm_s": get("firmware_retraction", k, dflt)
             for k, dflt in (("retract_length", 0.0), ("retract_speed", 20.0), ("unretract_extra_length", 0.0),
                             ("unretract_speed", 10.0))}
+    sections["input_shaper"] = None  # without the section Klipper does not shape
+    if cp.has_section("input_shaper"):  # the compensated file switches it off and back on to these
+        both = cp.get("input_shaper", "shaper_type", fallback="mzv").strip().lower()
+        sections["input_shaper"] = {
+            "shaper_type_x": cp.get("input_shaper", "shaper_type_x", fallback=both).strip().lower(),
+            "shaper_type_y": cp.get("input_shaper", "shaper_type_y", fallback=both).strip().lower(),
+            "shaper_freq_x_hz": get("input_shaper", "shaper_freq_x", 0.0),
+            "shaper_freq_y_hz": get("input_shaper", "shaper_freq_y", 0.0),
+            "damping_ratio_x": get("input_shaper", "damping_ratio_x", 0.1),
+            "damping_ratio_y": get("input_shaper", "damping_ratio_y", 0.1)}
     return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path, sections)
 
 

@@ -233,6 +233,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
                   f"{d['commands_unknown']} / {d['lines_skipped']}")
     if d.get("firmware_retractions"):
         t.add_row("G10/G11 timed with [firmware_retraction]", f"{d['firmware_retractions']}")
+    if d.get("input_shaper"):
+        t.add_row("input shaper", escape(d["input_shaper"]))
     if "warnings" in d:
         t.add_row("warnings", f"{d['warnings']}" + ("  (listed below)" if d.get("notes") else ""))
     if d.get("stale_temps_removed"):

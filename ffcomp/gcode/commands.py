@@ -29,7 +29,7 @@ line)); an unknown ``M`` code is passed through (M codes that move the toolhead 
 
 from __future__ import annotations
 
-__all__ = ["MOTION", "STATE", "PASS", "STOP", "UNKNOWN", "TABLE", "UNKNOWN_POLICIES", "classify"]
+__all__ = ["MOTION", "STATE", "PASS", "STOP", "UNKNOWN", "TABLE", "UNKNOWN_POLICIES", "BAKED_STOPS", "classify"]
 
 MOTION = "motion"
 STATE = "state"
@@ -38,6 +38,10 @@ STOP = "stop"
 UNKNOWN = "unknown"
 #: what to do with an unknown macro or G code
 UNKNOWN_POLICIES = ("stop", "pass", "refuse")
+#: stops the output keeps as comments: Klipper's ``SET_INPUT_SHAPER`` flushes the lookahead (a stop),
+#: but a compensated file runs with input shaping off (its header switches it off), and a shaper
+#: switched on in the middle of it would smear the compensation
+BAKED_STOPS = frozenset({"SET_INPUT_SHAPER"})
 
 
 def _words(cls: str, text: str) -> dict[str, str]:
@@ -71,6 +75,8 @@ TABLE: dict[str, str] = {
              "M109 M190 M191 M116 TEMPERATURE_WAIT "
              # pauses and user interaction
              "M0 M1 M25 M125 M226 M600 M601 M602 M603 M701 M702 M876 PAUSE RESUME CANCEL_PRINT "
+             # input shaping (Klipper flushes the lookahead; the output keeps it as a comment: BAKED_STOPS)
+             "SET_INPUT_SHAPER "
              # tool changes are added by classify(): T0, T1, ...
              # firmware retraction (the firmware moves the extruder, and Marlin may lift z)
              "G10 G11 "

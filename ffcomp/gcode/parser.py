@@ -46,7 +46,7 @@ from typing import Callable, Iterable, Iterator
 
 from ..errors import GcodeError
 from .arcs import arc_travel, offset_from_radius, plan_arc
-from .commands import PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, classify
+from .commands import BAKED_STOPS, PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, classify
 from .records import (
     ArcMove,
     Dwell,
@@ -320,7 +320,7 @@ class GcodeParser:
             self.counts[STOP] += 1
             if cmd in ("G10", "G11"):
                 self._retraction_stop(lineno, text)
-            return Stop(cmd)
+            return Stop(cmd, baked=cmd in BAKED_STOPS)
         # an unknown macro or G code: the policy decides
         if _has_undecodable(cmd):
             _fail("bytes that are not UTF-8 inside a command")

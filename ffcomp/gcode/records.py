@@ -188,11 +188,14 @@ class ModeChange:
 class Stop:
     """A command after which the machine has stopped, moved or changed on its own (M600, PAUSE, T1,
     G29, G10, an unknown macro...; see :mod:`ffcomp.gcode.commands`).  The planner brings the toolhead to
-    rest before it; the line itself passes through.  ``unknown`` is True for a command the table does not
-    know (treated as a stop by the unknown-command policy)."""
+    rest before it; the line itself passes through, unless ``baked``: a command whose effect the
+    compensated output must not have (``SET_INPUT_SHAPER``: the output runs with shaping off, see
+    :data:`ffcomp.gcode.commands.BAKED_STOPS`) is kept as a comment.  ``unknown`` is True for a command the
+    table does not know (treated as a stop by the unknown-command policy)."""
 
     command: str
     unknown: bool = False
+    baked: bool = False
 
 
 Op = Union[LinearMove, FirmwareMove, ArcMove, Dwell, Home, Sync, LimitsChange, ModeChange, Stop]

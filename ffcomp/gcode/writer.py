@@ -49,7 +49,7 @@ from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
-from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange
+from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
@@ -210,7 +210,8 @@ class GcodeWriter:
                 w("; ffcomp (skipped): " + raw)
                 self.stats.lines_skipped += 1
                 continue
-            if isinstance(op, LimitsChange) or (isinstance(op, ModeChange) and op.name in BAKED_MODES):
+            if isinstance(op, LimitsChange) or (isinstance(op, ModeChange) and op.name in BAKED_MODES) or (
+                    isinstance(op, Stop) and op.baked):
                 w("; ffcomp (baked in): " + raw)
                 self.stats.lines_commented += 1
                 continue

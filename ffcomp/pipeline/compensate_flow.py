@@ -35,7 +35,7 @@ from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
-from .header import firmware_needs, header_accel, header_lines, limit_warnings
+from .header import firmware_needs, header_accel, header_lines, limit_warnings, shaper_summary
 from .limited_moves import LimitBound, ZLimited, after_firmware, moves_where, z_held, z_hop, z_moving
 from .options import (  # noqa: F401  (re-exported: the run's options and summary live in options.py)
     JUMP_M,
@@ -153,6 +153,8 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.warnings += len(lim_notes)
         summ.notes.extend(lim_notes)
         head, foot = header_lines(profile, opts, src, accel, needs, summ.firmware_retractions)
+        if bd.firmware == "klipper":
+            summ.input_shaper = shaper_summary(profile)
         final_fd, final_tmp = make_temp(out_dir, "out", ".gcode")
         n_out = 0
         with os.fdopen(final_fd, "w", encoding="utf-8", errors="surrogateescape", newline="") as fo, \

@@ -136,6 +136,9 @@ class CompensationSummary:
     #: G10/G11 timed as the extruder moves Klipper's firmware_retraction makes of them (the profile's
     #: [firmware_retraction]); without that section they are stops (among commands_stopped)
     firmware_retractions: int = 0
+    #: what the output does to Klipper's input shaping (off while it runs; back on at its end with the
+    #: profile's [input_shaper]); empty for Marlin
+    input_shaper: str = ""
     #: where the plan starts (x, y, z mm) and whether the file homes before its first move
     start_mm: list | None = None
     homed_first: bool | None = None

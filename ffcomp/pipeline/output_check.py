@@ -9,7 +9,7 @@ so that every row can say how far it sits from what the model allows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,10 @@ class OutputCheck:
     marks the part), as ``{"none": (lag, contour), "exact": ..., "gcode": ...}``; empty when the
     file does not extrude.  ``limit``: the physical limit's report (the same path, the finest
     command the firmware executes, iterated on the model's own plant), or None when not asked for;
-    ``extruding`` then holds its ``"limit"`` entry too.
+    ``extruding`` then holds its ``"limit"`` entry too.  ``shaped``: for each Klipper input shaper
+    asked for, ``{"none": ..., "gcode": ...}``: the uncompensated file and the compensated output
+    run with that shaper on (what the printer does if its ``[input_shaper]`` stays on under the
+    output; the output's header switches it off).
     """
 
     none: ErrorReport
@@ -45,6 +48,7 @@ class OutputCheck:
     drift_s: float
     extruding: dict
     limit: ErrorReport | None = None
+    shaped: dict = field(default_factory=dict)
 
     def over_limit(self, run: str = "gcode", metric: str = "lag") -> float:
         """How many times the physical limit's RMS ``run`` (``"exact"`` or ``"gcode"``) leaves, for
@@ -67,15 +71,22 @@ class OutputCheck:
         return (n - g) / (n - e)
 
 
+def _fit(a: np.ndarray, n: int) -> np.ndarray:
+    """The record ``a`` cut to ``n`` samples, or held at its last sample up to ``n``."""
+    return a[:n] if len(a) >= n else np.vstack([a, np.repeat(a[-1:], n - len(a), 0)])
+
+
 def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=None, opts=None,
-                       limit: bool = False) -> OutputCheck:
+                       limit: bool = False, shapers: tuple = ()) -> OutputCheck:
     """Compensate ``src`` into ``out`` and judge the output on the simulator (single stream files).
 
     ``plant_profile``: the printer simulated (default ``profile``; e.g. the "true" dynamics of an
     identified profile); ``opts``: :class:`CompensateOptions` of the run; ``limit``: also run the
     physical limit's commands for the same path (computed for ``profile``'s model, as the exact
-    commands are; about 1.5 s of CPU per second of motion).  The summary carries the self-check's
-    drift on the absolute clock (``self_check_drift_ms``).
+    commands are; about 1.5 s of CPU per second of motion); ``shapers``: ``(name, freq_hz)`` pairs of
+    Klipper input shapers to run the uncompensated file and the output with as well (X and Y shaped
+    before the kinematics, as Klipper does; :attr:`OutputCheck.shaped`, keyed ``"name@freq"``).  The
+    summary carries the self-check's drift on the absolute clock (``self_check_drift_ms``).
     """
     from ..gcode.start import resolve_start
 
@@ -99,14 +110,22 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     t = np.arange(len(q)) * dt
     ideal = invert(LpvModel.from_profile(profile), q, X, dt).q_cmd
     summ = compensate_file(str(src), str(out), profile, *([opts] if opts is not None else []))
-    got = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True,
-                                     start_position_mm=start)).q_m[:len(q)]
-    got = np.vstack([got, np.repeat(got[-1:], len(q) - len(got), 0)])
+    out_s = concat_blocks(sample_gcode(str(out), profile, overlap=0, lenient=True, start_position_mm=start))
+    got, got_x = _fit(out_s.q_m, len(q)), _fit(out_s.xyz_m, len(q))
     runs = [q, ideal, got]
     if limit:
         from ..compensate.limit import limit_commands
 
         runs.append(limit_commands(LpvModel.from_profile(profile), q, X, dt).q_cmd)
+    n_fixed = len(runs)
+    if shapers:
+        from ..kinematics import inverse
+        from ..sim.shapers import shape_cartesian, shaper_impulses
+
+        geom = profile.geometry_si()
+        for name, freq in shapers:
+            imp = shaper_impulses(name, freq)
+            runs += [inverse(geom, shape_cartesian(t, x, imp, imp)) for x in (X, got_x)]
     sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack(runs), hold="linear")
     # extruding while moving: E rises over the sample and the nozzle moves faster than 1 mm/s
     speed = np.linalg.norm(np.gradient(X, axis=0), axis=1) / dt
@@ -116,6 +135,8 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     extruding = {"none": n_ex, "exact": e_ex, "gcode": g_ex} if ext.any() else {}
     if limit and ext.any():
         extruding["limit"] = reps[3][1]
+    shaped = {f"{name}@{freq:g}": {"none": reps[n_fixed + 2 * i][0], "gcode": reps[n_fixed + 2 * i + 1][0]}
+              for i, (name, freq) in enumerate(shapers)}
     intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
     return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding,
-                       reps[3][0] if limit else None)
+                       reps[3][0] if limit else None, shaped)
