@@ -133,9 +133,14 @@ def _compare(name: str, kt: np.ndarray, pt: np.ndarray, offset: float | None = N
         j = np.where(np.abs(kt[j - 1] - pt - off) < np.abs(kt[j] - pt - off), j - 1, j)
         d = kt[j] - pt - off
         ok = np.abs(d) < 5e-4
+        # one to one: where two planned steps found the same step of Klipper's, the nearer keeps it
+        order = np.argsort(np.abs(d), kind="stable")
+        first = np.zeros(len(d), bool)
+        first[order[np.unique(j[order], return_index=True)[1]]] = True
+        ok &= first
         res = d[ok] * 1e6
         print(f"  paired {int(ok.sum())} steps within 0.5 ms; unpaired: {int((~ok).sum())} of the plan's, "
-              f"{len(kt) - len(np.unique(j[ok]))} of Klipper's")
+              f"{len(kt) - int(ok.sum())} of Klipper's")
     print(f"  step time difference after one clock offset: max {np.abs(res).max():.2f} us, "
           f"RMS {np.sqrt(np.mean(res ** 2)):.2f} us")
     return off
