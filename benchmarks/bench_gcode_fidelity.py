@@ -59,6 +59,29 @@ def high_flow_circle(laps: int = 2) -> "ms.PathWriter":
     return pw
 
 
+def zhop_squares(layers: int = 3, side: float = 30.0, gap: float = 50.0, lift: float = 0.4) -> "ms.PathWriter":
+    """Two squares ``gap`` apart, printed in turn on every layer, with a slicer's z-hop between them
+    (PrusaSlicer's ``retract_lift``): retract, lift ``lift`` mm, travel, lower, unretract."""
+    pw = ms.PathWriter(0.45, 0.2)
+    h = side / 2
+    for layer in range(layers):
+        z = 0.2 * (layer + 1)
+        pw.comment(f"LAYER:{layer}")
+        for i, cx in enumerate((-gap / 2, gap / 2)):
+            corners = [(cx - h, -h), (cx + h, -h), (cx + h, h), (cx - h, h)]
+            if layer == 0 and i == 0:
+                pw.travel(*corners[0], z=z, f=12000)
+            else:
+                pw.retract(0.8)
+                pw.lines.append(f"G1 Z{z - (0.2 if i == 0 else 0.0) + lift:.3f} F6000")
+                pw.travel(*corners[0], f=12000)
+                pw.lines.append(f"G1 Z{z:.3f} F6000")
+                pw.unretract(0.8)
+            for k, c in enumerate(corners[1:] + corners[:1]):
+                pw.extrude(*c, f=9000 if k == 0 else None)
+    return pw
+
+
 def files(quick: bool) -> dict[str, str]:
     """The benchmark's G-code files (deterministic), name -> text."""
     layers = 2 if quick else 3
@@ -74,6 +97,7 @@ def files(quick: bool) -> dict[str, str]:
                                   ms.stress_zigzag(length=30.0, layers=1 if quick else 2)),
         "z travel 100 mm/s": "\n".join(HEAD + ms.ACCEL_10K + z) + "\n",
         "high flow circle 0.15 mm/mm": _file(ms.ACCEL_10K, high_flow_circle(laps=1 if quick else 2)),
+        "two squares, z-hop travels": _file(ms.ACCEL_10K, zhop_squares(layers=layers)),
     }
     return out
 

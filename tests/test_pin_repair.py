@@ -151,3 +151,67 @@ def test_plan_blend_runs_on_across_chunk_boundaries(cut):
     b = lb._blend_on(m[cut:], 24, "z", None)
     np.testing.assert_allclose(np.r_[a, b], whole, atol=1e-15)
     assert np.max(np.abs(np.diff(whole))) < 0.07  # a blend, not a step
+
+
+def test_frame_solution_equals_the_joint_one_when_every_component_is_pinned(profile):
+    """The nozzle-frame least squares (per-component pins) spans the same corrections as the joint
+    one when all three components share the pins (``Delta = J^-1 delta`` maps the knot spaces onto
+    each other), so both give the same command."""
+    from ffcomp.compensate.pin_repair import (
+        PulseResponses,
+        RepairConfig,
+        _frame_operator,
+        _repair_frames,
+        repair_window,
+    )
+    from ffcomp.kinematics import inverse, jacobian
+    from ffcomp.model.lpv import LpvModel
+
+    model = LpvModel.from_profile(profile)
+    dt, cfg = 1e-3, RepairConfig()
+    pose = np.array([0.02, -0.01, 0.03])
+    H = PulseResponses(model, dt, cfg).at(pose)
+    J = jacobian(model.geometry, pose)
+    n = 90
+    rng = np.random.default_rng(3)
+    q = inverse(model.geometry, pose) + np.cumsum(rng.normal(0, 2e-6, (n, 3)), 0)
+    c = q + rng.normal(0, 5e-6, (n, 3))
+    pin = np.zeros(n, bool)
+    pin[35:52] = True
+    joint = repair_window(H, c, q, pin, J, dt, cfg)
+    pins = np.repeat(pin[:, None], 3, 1)
+    frame = _repair_frames(_frame_operator(H, pins, J, dt, cfg), c, q, pins, J, cfg)
+    frame[pin] = q[pin]
+    assert np.max(np.abs(frame - joint)) < 1e-3 * np.max(np.abs(joint - c))
+
+
+def test_z_only_pins_hold_the_nozzle_z_and_free_x_and_y(profile):
+    """``zpin``: on those samples the nozzle's z (``J q``'s z row) equals the plan's and x/y move
+    with the compensation (pinned whole, as before, they stay on the plan)."""
+    from ffcomp.compensate.pin_repair import PulseResponses, RepairConfig, repair_window
+    from ffcomp.kinematics import inverse, jacobian
+    from ffcomp.model.lpv import LpvModel
+
+    model = LpvModel.from_profile(profile)
+    dt, cfg = 1e-3, RepairConfig()
+    pose = np.array([0.0, 0.0, 0.03])
+    H = PulseResponses(model, dt, cfg).at(pose)
+    J = jacobian(model.geometry, pose)
+    n = 120
+    t = np.arange(n) * dt
+    xyz = np.stack([0.002 * np.clip((t - 0.06) / 0.04, 0, 1) ** 2, 0 * t, 0.03 + 4e-4 * np.clip(t / 0.06, 0, 1)], 1)
+    q = inverse(model.geometry, xyz)
+    rng = np.random.default_rng(5)
+    c = q + rng.normal(0, 1e-5, (n, 3))  # stands for the compensated command: off the plan everywhere
+    pin = np.zeros(n, bool)
+    pin[10:20] = True  # a retraction
+    zpin = np.zeros(n, bool)
+    zpin[20:60] = True  # the z-hop after it
+    out = repair_window(H, c, q, pin, J, dt, cfg, zpin=zpin)
+    assert np.array_equal(out[pin], q[pin])
+    dz = (out - q) @ J[2]
+    assert np.max(np.abs(dz[zpin])) < 1e-9
+    dxy = (out - q) @ J[:2].T
+    assert np.max(np.abs(dxy[zpin])) > 1e-6  # x and y keep a correction
+    full = repair_window(H, c, q, pin | zpin, J, dt, cfg)
+    assert np.max(np.abs((full - q)[zpin])) < 1e-12  # (the whole command pinned, as before)

@@ -365,20 +365,26 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
         stream = compensated_stream(plan, moves, profile, model, icfg, opts, summ, src, cuts)
         if opts.pin_repair:
 
+            def hop_pinned(mv) -> bool:  # a z-hop right after a hold: the firmware must run its z as planned
+                return bound is not None and opts.repair.pin_z_after_hold and z_hop(mv) and bound.z_after_hold(
+                    mv, moves)
+
             def pinned(mv) -> bool:
                 if mv.kind != "move":  # extruder-only move or dwell
                     return True
-                return bound is not None and (bound.bound(mv) or (
-                    opts.repair.pin_z_after_hold and z_hop(mv) and bound.z_after_hold(mv, moves))
-                    or (opts.repair.pin_z_before_hold and z_hop(mv) and bound.z_before_hold(mv, moves)
-                        and zlim is not None and zlim.limited(mv)))
+                return bound is not None and (bound.bound(mv) or (not opts.repair.z_only_hops and hop_pinned(mv)) or (
+                    opts.repair.pin_z_before_hold and z_hop(mv) and bound.z_before_hold(mv, moves)
+                    and zlim is not None and zlim.limited(mv)))
 
             def pins(meta):
                 return (moves_where(meta["move_index"], moves, pinned)
                         | after_firmware(meta["move_index"], moves, meta["k"] * dt, dt))
 
+            zpins = (lambda meta: moves_where(meta["move_index"], moves, hop_pinned)) if opts.repair.z_only_hops \
+                else None
             steep = (lambda meta: moves_where(meta["move_index"], moves, zlim.limited)) if zlim is not None else None
-            stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep)
+            stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep,
+                                  zpin_fn=zpins)
         for qc, meta in stream:
             emit(qc, meta)
         if cuts is not None:

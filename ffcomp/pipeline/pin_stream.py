@@ -34,7 +34,8 @@ class PinStats:
 
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
                  cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3,
-                 steep_fn: Callable[[dict], np.ndarray] | None = None) -> Iterator[tuple[np.ndarray, dict]]:
+                 steep_fn: Callable[[dict], np.ndarray] | None = None,
+                 zpin_fn: Callable[[dict], np.ndarray] | None = None) -> Iterator[tuple[np.ndarray, dict]]:
     """Yield ``(q_cmd, meta)`` chunks with the pinned samples held on the plan (``meta["q"]``).
 
     ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives; ``steep_fn(meta)``
@@ -42,6 +43,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     samples touch them penalises the correction's acceleration ``cfg.steep_accel_factor`` times
     harder (in acceleration), since the firmware caps those segments, their junctions included, at
     ``max_z_accel * d/|dz|`` (a fast z move right after a pinned z-hop ran 7.7 ms late without).
+    ``zpin_fn(meta)`` (optional): samples where only the nozzle's z is pinned to the plan
+    (:func:`~ffcomp.compensate.pin_repair.repair_window`'s ``zpin``), x and y free.
     """
     stats = stats if stats is not None else PinStats()
     responses = PulseResponses(model, dt_s, cfg)
@@ -56,6 +59,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     buf_next = np.zeros(0, bool)  # pinned after a moving pinned run's end (see solve)
     buf_qt = np.zeros((0, 3))  # that position
     buf_steep = np.zeros(0, bool)  # samples of moves max_z_accel binds (steep_fn)
+    buf_zpin = np.zeros(0, bool)  # samples whose nozzle z alone is pinned (zpin_fn)
     f = max(float(cfg.steep_accel_factor), 1e-9)
     cfg_steep = replace(cfg, accel_xy_m_s2=cfg.accel_xy_m_s2 / f, accel_z_m_s2=cfg.accel_z_m_s2 / f)
     repaired_upto = 0  # buffer rows before this belong to clusters already repaired
@@ -95,10 +99,11 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             buf_next[en + 1] = buf_pin[en + 1] = True
         qtgt = np.where(buf_rest[:, None], buf_qt, qref)
         safe = n if final else max(n - M, 0)
+        any_pin = buf_pin | buf_zpin
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
-            if not buf_pin[s0:s1].any():
+            if not any_pin[s0:s1].any():
                 continue
-            for a, b in pinned_clusters(buf_pin[s0:s1], M):
+            for a, b in pinned_clusters(any_pin[s0:s1], M):
                 a, b = a + s0, b + s0
                 if not final and s1 == n and b + M > n:  # the window (or the run) is not all here yet
                     return max(min(safe, a - M), 0)
@@ -111,12 +116,13 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
-                steep = bool(np.any(buf_steep[w0:w1] & ~buf_pin[w0:w1]))
+                steep = bool(np.any(buf_steep[w0:w1] & ~any_pin[w0:w1]))
                 new = repair_window(responses.at(pose), old, qtgt[w0:w1], buf_pin[w0:w1], J, dt_s,
-                                    cfg_steep if steep else cfg, cache=ops, key=(key, steep))
+                                    cfg_steep if steep else cfg, cache=ops, key=(key, steep),
+                                    zpin=buf_zpin[w0:w1] & ~buf_pin[w0:w1])
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
-                stats.pinned_samples += int(buf_pin[a:b].sum())
+                stats.pinned_samples += int(any_pin[a:b].sum())
                 buf_q[w0:w1] = new
                 repaired_upto = b
         return safe
@@ -129,6 +135,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         buf_next = np.concatenate([buf_next, np.zeros(len(pin), bool)])
         buf_steep = np.concatenate([buf_steep, np.asarray(steep_fn(meta), bool) if steep_fn is not None
                                     else np.zeros(len(pin), bool)])
+        buf_zpin = np.concatenate([buf_zpin, np.asarray(zpin_fn(meta), bool) if zpin_fn is not None
+                                   else np.zeros(len(pin), bool)])
         buf_qt = np.vstack([buf_qt, np.zeros((len(pin), 3))])
         if buf_meta is None:
             buf_meta = {k: np.asarray(v) for k, v in meta.items()}
@@ -141,7 +149,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             k = sizes.popleft()
             out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
             buf_q, buf_pin, buf_rest, buf_qt = buf_q[k:], buf_pin[k:], buf_rest[k:], buf_qt[k:]
-            buf_next, buf_steep = buf_next[k:], buf_steep[k:]
+            buf_next, buf_steep, buf_zpin = buf_next[k:], buf_steep[k:], buf_zpin[k:]
             buf_meta = {key: v[k:] for key, v in buf_meta.items()}
             repaired_upto = max(repaired_upto - k, 0)
             safe -= k
