@@ -288,13 +288,13 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
     out = o.copy()
     if sum(op.nf):
         Yo = np.stack([sum(np.convolve(op.Hn[:, i, k], o[:, k]) for k in range(3)) for i in range(3)], 1)[op.keep]
-        rhs = [-(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2]
+        rhs = -(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2
         off = 0
         for k in range(3):
             D2o = np.diff(np.r_[0.0, o[:, k], 0.0], 2)[:, None] * op.wrow[k]
-            rhs[0][off:off + op.nf[k]] -= (op.D2S[k].T @ D2o)[:, 0]
+            rhs[off:off + op.nf[k]] -= (op.D2S[k].T @ D2o)[:, 0]
             off += op.nf[k]
-        z = cho_solve(op.factor, rhs[0], check_finite=False)
+        z = cho_solve(op.factor, rhs, check_finite=False)
         off = 0
         for k in range(3):
             out[:, k] += op.S[k] @ z[off:off + op.nf[k]]
