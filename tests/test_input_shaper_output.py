@@ -30,11 +30,17 @@ def test_profile_section_round_trip_and_checks(tmp_path, profile):
             profile_from_dict({**d, "input_shaper": {key: bad}})
 
 
-def test_klipper_import_reads_the_input_shaper(tmp_path, profile):
+def test_klipper_import_reads_the_input_shaper(tmp_path, profile, capsys):
+    from cli_util import run
+
     cfg = tmp_path / "printer.cfg"
     cfg.write_text(KLIPPER.replace("[stepper_a]", "[input_shaper]\nshaper_type: EI\nshaper_type_y: zv\n"
                                    "shaper_freq_x: 62.4\nshaper_freq_y: 58.8\ndamping_ratio_x: 0.05\n\n[stepper_a]"))
     assert from_klipper_cfg(cfg).input_shaper == InputShaper("ei", "zv", 62.4, 58.8, 0.05, 0.1)
+    code, out, err = run(capsys, "profile", "import", "--klipper", cfg, "-o", tmp_path / "p.toml")
+    assert code == 0, err
+    assert "input shaper ei 62.4 Hz / zv 58.8 Hz" in " ".join(out.split())
+    assert load_profile(tmp_path / "p.toml").input_shaper == InputShaper("ei", "zv", 62.4, 58.8, 0.05, 0.1)
     cfg.write_text(KLIPPER)  # no section: Klipper does not shape, whatever the base profile said
     assert from_klipper_cfg(cfg, replace(profile, input_shaper=InputShaper())).input_shaper is None
 

@@ -73,6 +73,10 @@ def import_cmd(
     fr = prof.firmware_retraction
     retraction = (f", firmware retraction {fr.retract_length_mm:g} mm at {fr.retract_speed_mm_s:g} mm/s"
                   if fr is not None else "")
+    sh = prof.input_shaper
+    if sh is not None:  # what a compensated file switches back on at its end
+        retraction += (f", input shaper {sh.shaper_type_x} {sh.shaper_freq_x_hz:g} Hz / {sh.shaper_type_y} "
+                       f"{sh.shaper_freq_y_hz:g} Hz")
     console.print(f"wrote {output}: arms {mm(g.arm_length_mm)} mm, radius {mm(g.delta_radius_mm)} mm, towers at "
                   f"{mm(g.tower_angles_deg)} deg, print radius {g.print_radius_mm:.2f} mm, planner "
                   f"{prof.limits.planner}, arc chords {prof.limits.arc_resolution_mm:g} mm{retraction}",
