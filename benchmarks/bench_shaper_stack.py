@@ -3,7 +3,7 @@
 Run: ``python benchmarks/bench_shaper_stack.py [--quick]``.  A Klipper user with an accelerometer has
 usually tuned ``[input_shaper]``.  Klipper shapes the toolhead's X and Y before the kinematics, so a
 shaper left on under a compensated file convolves the compensation's command with its impulses.  The
-output's header therefore switches shaping off (``SET_INPUT_SHAPER SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0``;
+output's header therefore switches shaping off (:data:`ffcomp.pipeline.header.SHAPER_OFF`,
 :func:`ffcomp.pipeline.header.shaper_lines`).  For the default profile and ``other_delta`` (compensated
 with the identified profile, simulated on ``other_delta_truth.toml``), on the G-code fidelity bench's
 files: the lag-aligned RMS (um) of the uncompensated file, of the same with Klipper's ZV / MZV / EI at

@@ -35,9 +35,10 @@ Sections
     0, 20, 0, 10 for the keys not given).  With it, ``G10``/``G11`` are timed as the extruder-only moves
     the firmware makes of them; without it they are stops (:mod:`ffcomp.gcode.commands`).
 ``[input_shaper]``
-    Optional: the printer's Klipper ``[input_shaper]`` values, ``shaper_type_x``, ``shaper_type_y``
-    (``zv``, ``mzv``, ``zvd``, ``ei``, ``2hump_ei``, ``3hump_ei``; Klipper's default ``mzv``),
-    ``shaper_freq_x_hz``, ``shaper_freq_y_hz`` (0: off), ``damping_ratio_x``, ``damping_ratio_y``
+    Optional: the printer's Klipper ``[input_shaper]`` values, ``shaper_type_x``, ``shaper_type_y``,
+    ``shaper_type_z`` (``zv``, ``mzv``, ``zvd``, ``ei``, ``2hump_ei``, ``3hump_ei``; Klipper's default
+    ``mzv``), ``shaper_freq_x_hz``, ``shaper_freq_y_hz``, ``shaper_freq_z_hz`` (0: off; z is recent
+    Klipper's optional z shaper), ``damping_ratio_x``, ``damping_ratio_y``, ``damping_ratio_z``
     (default 0.1).  A compensated file switches the firmware's input shaping off (the compensation
     is the shaping: a shaper on top smears it); with this section it switches it back on at its end.
 ``[[effects]]``
@@ -181,12 +182,18 @@ class InputShaper:
     shaper_freq_y_hz: float = 0.0
     damping_ratio_x: float = 0.1
     damping_ratio_y: float = 0.1
+    #: Klipper's optional z shaper (recent versions): off unless its frequency is set
+    shaper_type_z: str = "mzv"
+    shaper_freq_z_hz: float = 0.0
+    damping_ratio_z: float = 0.1
 
     def klipper_command(self) -> str:
-        """The ``SET_INPUT_SHAPER`` line that restores these values."""
-        return (f"SET_INPUT_SHAPER SHAPER_TYPE_X={self.shaper_type_x} SHAPER_FREQ_X={self.shaper_freq_x_hz:g} "
-                f"DAMPING_RATIO_X={self.damping_ratio_x:g} SHAPER_TYPE_Y={self.shaper_type_y} "
-                f"SHAPER_FREQ_Y={self.shaper_freq_y_hz:g} DAMPING_RATIO_Y={self.damping_ratio_y:g}")
+        """The ``SET_INPUT_SHAPER`` line that restores these values (z only where it is set)."""
+        axes = "xyz" if self.shaper_freq_z_hz > 0 else "xy"
+        return "SET_INPUT_SHAPER " + " ".join(
+            f"SHAPER_TYPE_{a.upper()}={getattr(self, f'shaper_type_{a}')} "
+            f"SHAPER_FREQ_{a.upper()}={getattr(self, f'shaper_freq_{a}_hz'):g} "
+            f"DAMPING_RATIO_{a.upper()}={getattr(self, f'damping_ratio_{a}'):g}" for a in axes)
 
 
 _PER_TOWER = {"arm_length_mm", "delta_radius_mm", "tower_angles_deg", "m", "c", "b", "k", "d0", "d1", "d2"}
@@ -338,8 +345,10 @@ _RULES: dict[str, dict[str, dict]] = {
     "input_shaper": {
         "shaper_freq_x_hz": {"nonneg": True},
         "shaper_freq_y_hz": {"nonneg": True},
+        "shaper_freq_z_hz": {"nonneg": True},
         "damping_ratio_x": {"nonneg": True, "hi": 0.99},
         "damping_ratio_y": {"nonneg": True, "hi": 0.99},
+        "damping_ratio_z": {"nonneg": True, "hi": 0.99},
     },
 }
 _CLASSES = {"geometry": Geometry, "limits": Limits, "dynamics": Dynamics,

@@ -219,13 +219,12 @@ def from_klipper_cfg(path: str | Path, base: PrinterProfile | None = None, notes
     sections["input_shaper"] = None  # without the section Klipper does not shape
     if cp.has_section("input_shaper"):  # the compensated file switches it off and back on to these
         both = cp.get("input_shaper", "shaper_type", fallback="mzv").strip().lower()
-        sections["input_shaper"] = {
-            "shaper_type_x": cp.get("input_shaper", "shaper_type_x", fallback=both).strip().lower(),
-            "shaper_type_y": cp.get("input_shaper", "shaper_type_y", fallback=both).strip().lower(),
-            "shaper_freq_x_hz": get("input_shaper", "shaper_freq_x", 0.0),
-            "shaper_freq_y_hz": get("input_shaper", "shaper_freq_y", 0.0),
-            "damping_ratio_x": get("input_shaper", "damping_ratio_x", 0.1),
-            "damping_ratio_y": get("input_shaper", "damping_ratio_y", 0.1)}
+        sections["input_shaper"] = {}
+        for a in "xyz":  # (z: recent Klipper's optional z shaper)
+            sections["input_shaper"].update({
+                f"shaper_type_{a}": cp.get("input_shaper", f"shaper_type_{a}", fallback=both).strip().lower(),
+                f"shaper_freq_{a}_hz": get("input_shaper", f"shaper_freq_{a}", 0.0),
+                f"damping_ratio_{a}": get("input_shaper", f"damping_ratio_{a}", 0.1)})
     return _merge(base, geom, limits, f"Klipper delta from {Path(path).name}", path, sections)
 
 

@@ -36,11 +36,19 @@ def test_klipper_import_reads_the_input_shaper(tmp_path, profile, capsys):
     cfg = tmp_path / "printer.cfg"
     cfg.write_text(KLIPPER.replace("[stepper_a]", "[input_shaper]\nshaper_type: EI\nshaper_type_y: zv\n"
                                    "shaper_freq_x: 62.4\nshaper_freq_y: 58.8\ndamping_ratio_x: 0.05\n\n[stepper_a]"))
-    assert from_klipper_cfg(cfg).input_shaper == InputShaper("ei", "zv", 62.4, 58.8, 0.05, 0.1)
+    want = InputShaper("ei", "zv", 62.4, 58.8, 0.05, 0.1, shaper_type_z="ei")  # z's type follows shaper_type
+    assert from_klipper_cfg(cfg).input_shaper == want
     code, out, err = run(capsys, "profile", "import", "--klipper", cfg, "-o", tmp_path / "p.toml")
     assert code == 0, err
     assert "input shaper ei 62.4 Hz / zv 58.8 Hz" in " ".join(out.split())
-    assert load_profile(tmp_path / "p.toml").input_shaper == InputShaper("ei", "zv", 62.4, 58.8, 0.05, 0.1)
+    assert load_profile(tmp_path / "p.toml").input_shaper == want
+    # recent Klipper's optional z shaper: read, and restored only where it is set
+    cfg.write_text(KLIPPER.replace("[stepper_a]", "[input_shaper]\nshaper_freq_x: 60\nshaper_freq_y: 61\n"
+                                   "shaper_type_z: zv\nshaper_freq_z: 35.5\n\n[stepper_a]"))
+    sh = from_klipper_cfg(cfg).input_shaper
+    assert (sh.shaper_type_z, sh.shaper_freq_z_hz, sh.damping_ratio_z) == ("zv", 35.5, 0.1)
+    assert "SHAPER_TYPE_Z=zv SHAPER_FREQ_Z=35.5 DAMPING_RATIO_Z=0.1" in sh.klipper_command()
+    assert "_Z=" not in InputShaper(shaper_freq_x_hz=60.0).klipper_command()
     cfg.write_text(KLIPPER)  # no section: Klipper does not shape, whatever the base profile said
     assert from_klipper_cfg(cfg, replace(profile, input_shaper=InputShaper())).input_shaper is None
 
@@ -58,6 +66,7 @@ def test_header_switches_shaping_off_and_the_footer_back_on(tmp_path, profile):
     s, out = _run(tmp_path, replace(profile, input_shaper=sh), SQUARE)
     assert s.input_shaper.startswith("off while the file runs, back on") and "62.1 Hz" in s.input_shaper
     first_move = next(i for i, ln in enumerate(out) if ln.startswith("G1 "))
+    assert "SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0 SHAPER_FREQ_Z=0" in SHAPER_OFF  # every axis Klipper may shape
     off = [i for i, ln in enumerate(out) if ln.startswith(SHAPER_OFF)]
     assert len(off) == 1 and off[0] < first_move
     last_move = max(i for i, ln in enumerate(out) if ln.startswith("G1 "))

@@ -111,8 +111,9 @@ def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
 
 
 #: the line that switches Klipper's input shaping off (harmless without ``[input_shaper]``: Klipper
-#: answers an unknown command with a message and goes on)
-SHAPER_OFF = "SET_INPUT_SHAPER SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0"
+#: answers an unknown command with a message and goes on; a Klipper without the optional z shaper
+#: ignores SHAPER_FREQ_Z)
+SHAPER_OFF = "SET_INPUT_SHAPER SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0 SHAPER_FREQ_Z=0"
 
 
 def shaper_lines(profile) -> tuple[list[str], list[str]]:
@@ -139,8 +140,9 @@ def shaper_summary(profile) -> str:
     if sh is None:
         return ("off while the file runs, and left off (the profile has no [input_shaper]: "
                 "ffcomp profile import --klipper printer.cfg reads it)")
+    z = f" / z {sh.shaper_type_z} {sh.shaper_freq_z_hz:g} Hz" if sh.shaper_freq_z_hz > 0 else ""
     return (f"off while the file runs, back on at its end ({sh.shaper_type_x} {sh.shaper_freq_x_hz:g} Hz / "
-            f"{sh.shaper_type_y} {sh.shaper_freq_y_hz:g} Hz)")
+            f"{sh.shaper_type_y} {sh.shaper_freq_y_hz:g} Hz{z})")
 
 
 def header_accel(profile, opts) -> float:
