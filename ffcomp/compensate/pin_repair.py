@@ -185,6 +185,40 @@ def _interp_matrix(pin: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     return S, F
 
 
+def _edge_weights(pin: np.ndarray, cfg: RepairConfig) -> np.ndarray:
+    """Weight (n,) of the acceleration penalty at each sample: ``1 + edge_weight exp(-d / edge_samples)``
+    with ``d`` the distance to the nearest pinned sample (1 everywhere without pins)."""
+    n = len(pin)
+    at = np.nonzero(pin)[0]
+    if cfg.edge_weight <= 0 or not len(at):
+        return np.ones(n)
+    idx = np.arange(n)
+    j = np.clip(np.searchsorted(at, idx), 0, len(at) - 1)
+    dist = np.minimum(np.abs(idx - at[j]), np.abs(idx - at[np.maximum(j - 1, 0)]))
+    return 1.0 + cfg.edge_weight * np.exp(-dist / cfg.edge_samples)
+
+
+def _second_difference(S: np.ndarray) -> np.ndarray:
+    """Second difference of the rows of ``S`` (n, m), zero beyond both ends (the correction vanishes
+    outside the window): (n, m)."""
+    z = np.zeros((1, S.shape[1]))
+    return np.diff(np.vstack([z, S, z]), 2, axis=0)
+
+
+def _cached(cache: dict | None, ck, build):
+    """``build()``, or the value ``cache`` holds for ``ck`` (a least-recently-used cache of at most
+    :data:`MAX_CACHED_WINDOWS` entries, about 1 MB each; None: no cache)."""
+    if cache is None:
+        return build()
+    op = cache.pop(ck, None)
+    if op is None:
+        while len(cache) >= MAX_CACHED_WINDOWS:  # least recently used first
+            cache.pop(next(iter(cache)))
+        op = build()
+    cache[ck] = op  # most recently used last
+    return op
+
+
 class _Operator:
     """The parts of one window's least squares that depend only on its pin pattern and pose cell."""
 
@@ -211,20 +245,12 @@ def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: R
     op.Phi = Phi
     # nozzle acceleration of the correction (second difference, zeros beyond the window), weighted
     # per axis: P = J^T W J / dt^4 ...
-    D2S = np.diff(np.vstack([np.zeros((1, nf)), op.S, np.zeros((1, nf))]), 2, axis=0)
+    D2S = _second_difference(op.S)
     Wd = np.array([1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_xy_m_s2**2, 1.0 / cfg.accel_z_m_s2**2])
     op.P = (J.T * Wd) @ J / dt_s**4
     # ... and weighted up next to the pins: there the firmware starts from the plan's state (from
     # rest after a hold) and cannot take a jump
-    idx = np.arange(n)
-    pins_at = np.nonzero(pin)[0]
-    if cfg.edge_weight > 0 and len(pins_at):
-        j = np.clip(np.searchsorted(pins_at, idx), 0, len(pins_at) - 1)
-        dist = np.minimum(np.abs(idx - pins_at[j]), np.abs(idx - pins_at[np.maximum(j - 1, 0)]))
-        wrow = 1.0 + cfg.edge_weight * np.exp(-dist / cfg.edge_samples)
-    else:
-        wrow = np.ones(n)
-    op.wrow = np.sqrt(wrow)[:, None]  # row k of the second difference is centred on sample k
+    op.wrow = np.sqrt(_edge_weights(pin, cfg))[:, None]  # row k of the second difference is centred on sample k
     op.D2S = D2S * op.wrow
     G = Phi.T @ Phi / cfg.err_m**2 + np.kron(op.P, op.D2S.T @ op.D2S)
     G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
@@ -256,19 +282,8 @@ def _frame_operator(H: np.ndarray, pins: np.ndarray, J: np.ndarray, dt_s: float,
     op.keep = np.r_[np.arange(min(n, L)), np.arange(n, L, cfg.tail_stride)]
     op.Phi = np.vstack([np.hstack([R[i][k][op.keep] for k in range(3)]) for i in range(3)])
     wd = (1.0 / cfg.accel_xy_m_s2, 1.0 / cfg.accel_xy_m_s2, 1.0 / cfg.accel_z_m_s2)
-    idx = np.arange(n)
-    op.wrow, op.D2S = [], []
-    for k in range(3):
-        at = np.nonzero(pins[:, k])[0]
-        wrow = np.ones(n)
-        if cfg.edge_weight > 0 and len(at):
-            j = np.clip(np.searchsorted(at, idx), 0, len(at) - 1)
-            dist = np.minimum(np.abs(idx - at[j]), np.abs(idx - at[np.maximum(j - 1, 0)]))
-            wrow = 1.0 + cfg.edge_weight * np.exp(-dist / cfg.edge_samples)
-        w = (np.sqrt(wrow) * wd[k] / dt_s**2)[:, None]
-        op.wrow.append(w)
-        op.D2S.append(np.diff(np.vstack([np.zeros((1, op.nf[k])), op.S[k], np.zeros((1, op.nf[k]))]), 2,
-                              axis=0) * w)
+    op.wrow = [(np.sqrt(_edge_weights(pins[:, k], cfg)) * wd[k] / dt_s**2)[:, None] for k in range(3)]
+    op.D2S = [_second_difference(op.S[k]) * op.wrow[k] for k in range(3)]
     nt = sum(op.nf)
     G = op.Phi.T @ op.Phi / cfg.err_m**2
     o = 0
@@ -291,7 +306,7 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
         rhs = -(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2
         off = 0
         for k in range(3):
-            D2o = np.diff(np.r_[0.0, o[:, k], 0.0], 2)[:, None] * op.wrow[k]
+            D2o = _second_difference(o[:, k:k + 1]) * op.wrow[k]
             rhs[off:off + op.nf[k]] -= (op.D2S[k].T @ D2o)[:, 0]
             off += op.nf[k]
         z = cho_solve(op.factor, rhs, check_finite=False)
@@ -320,37 +335,18 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     if zpin is not None and np.any(zpin & ~pin):
         pins = np.repeat(pin[:, None], 3, axis=1)
         pins[:, 2] |= np.asarray(zpin, bool)
-        fop = None
-        if cache is not None:
-            ck = ("frames", key, len(pin), np.packbits(pins).tobytes())
-            fop = cache.pop(ck, None)
-            if fop is None:
-                while len(cache) >= MAX_CACHED_WINDOWS:
-                    cache.pop(next(iter(cache)))
-                fop = _frame_operator(H, pins, J, dt_s, cfg)
-            cache[ck] = fop
-        else:
-            fop = _frame_operator(H, pins, J, dt_s, cfg)
+        fop = _cached(cache, ("frames", key, len(pin), np.packbits(pins).tobytes()),
+                      lambda: _frame_operator(H, pins, J, dt_s, cfg))
         out = _repair_frames(fop, c, q, pins, J, cfg)
         out[pin] = q[pin]
         return out
-    op = None
-    if cache is not None:
-        ck = (key, len(pin), np.packbits(pin).tobytes())
-        op = cache.pop(ck, None)
-        if op is None:
-            while len(cache) >= MAX_CACHED_WINDOWS:  # least recently used first (about 1 MB each)
-                cache.pop(next(iter(cache)))
-            op = _operator(H, pin, J, dt_s, cfg)
-        cache[ck] = op  # most recently used last
-    else:
-        op = _operator(H, pin, J, dt_s, cfg)
+    op = _cached(cache, (key, len(pin), np.packbits(pin).tobytes()), lambda: _operator(H, pin, J, dt_s, cfg))
     fixed = np.where(pin[:, None], q - c, 0.0)
     o = op.F @ fixed  # (n, 3): the pinned values, ramps towards the free knots excluded (they are in S)
     if op.nf == 0:
         return c + o
     Yo = np.stack([sum(np.convolve(H[:, i, j], o[:, j]) for j in range(3)) for i in range(3)], 1)[op.keep]
-    D2o = np.diff(np.vstack([np.zeros((1, 3)), o, np.zeros((1, 3))]), 2, axis=0) * op.wrow
+    D2o = _second_difference(o) * op.wrow
     rhs = -(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2 - (op.D2S.T @ D2o @ op.P.T).T.reshape(-1)
     z = cho_solve(op.factor, rhs, check_finite=False).reshape(3, op.nf).T
     out = c + o + op.S @ z
