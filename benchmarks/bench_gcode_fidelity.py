@@ -165,8 +165,8 @@ def main() -> None:
         print(f"\n### {pname}\n")
         lim_head = "" if a.no_limit else " limit lag | exact / limit | G-code / limit |"
         print("| file | exact lag | G-code lag | exact contour | G-code contour | kept lag | kept contour "
-              "| kept lag, extruding | kept contour, extruding | drift max (ms) |" + lim_head)
-        print("|---|---|---|---|---|---|---|---|---|---|" + ("" if a.no_limit else "---|---|---|"))
+              "| kept lag, extruding | kept contour, extruding | drift max (ms) | clock error max (um) |" + lim_head)
+        print("|---|---|---|---|---|---|---|---|---|---|---|" + ("" if a.no_limit else "---|---|---|"))
         for name, text in files(a.quick).items():
             if a.only and a.only not in name:
                 continue
@@ -186,9 +186,11 @@ def main() -> None:
                   f"| {e.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | "
                   f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
                   f"{c.kept('contour'):.2f} | {_f(c.kept_extruding('lag'))} | {_f(c.kept_extruding('contour'))} "
-                  f"| {c.summary.self_check_drift_ms:+.3f} |" + _limit_cells(c, nl), flush=True)
+                  f"| {c.summary.self_check_drift_ms:+.3f} | {c.summary.self_check_abs_max_um:.1f} |"
+                  + _limit_cells(c, nl), flush=True)
         if a.drift_file:
-            print("\n| file | drift max (ms) | at (s) | self-check max (um) |\n|---|---|---|---|")
+            print("\n| file | drift max (ms) | at (s) | self-check max (um) | clock error max (um) |\n"
+                  "|---|---|---|---|---|")
         for f in a.drift_file:
             try:
                 s = compensate_file(str(f), str(tmp / "drift.gcode"), prof,
@@ -197,7 +199,7 @@ def main() -> None:
                 print(f"| {f.name} | failed: {type(e).__name__}: {str(e)[:100]} |||", flush=True)
                 continue
             print(f"| {f.name} | {s.self_check_drift_ms:+.3f} | {s.self_check_drift_at_s:.3f} | "
-                  f"{s.self_check_max_um:.1f} |", flush=True)
+                  f"{s.self_check_max_um:.1f} | {s.self_check_abs_max_um:.1f} |", flush=True)
 
 
 if __name__ == "__main__":
