@@ -7,7 +7,8 @@ compensates each on the default profile and on ``samples/profiles/other_delta.to
 (self-check limits lifted, so every file is measured) and prints, per profile, how many files drift
 more than 0.2 ms and 1 ms on the absolute clock, the median and the largest drift, the clock error
 (the largest distance of the re-planned output from the intended command at the same instant, um;
-its median and largest over the files), and the worst file.  What the hypothesis test ``tests/test_compensate_random.py`` checks with loose bounds.
+its median and largest over the files), and the worst file.  What the hypothesis test
+``tests/test_compensate_random.py`` checks with loose bounds.
 """
 
 from __future__ import annotations

@@ -215,3 +215,38 @@ def test_z_only_pins_hold_the_nozzle_z_and_free_x_and_y(profile):
     assert np.max(np.abs(dxy[zpin])) > 1e-6  # x and y keep a correction
     full = repair_window(H, c, q, pin | zpin, J, dt, cfg)
     assert np.max(np.abs((full - q)[zpin])) < 1e-12  # (the whole command pinned, as before)
+
+
+def test_a_lifts_x_and_y_correction_runs_straight(profile):
+    """``lift_xy_accel_factor``: where only the nozzle's z is pinned (a lift), the x/y correction's
+    acceleration is penalised that much harder, so the lift's segments keep their direction (Klipper
+    slows the short segments of a lift at ``max_z_accel`` wherever they turn: on the fidelity bench's
+    z-hop file, with the factor 1, 2.8 ms late); the correction stays, as a nearly straight ramp."""
+    from dataclasses import replace
+
+    from ffcomp.compensate.pin_repair import PulseResponses, RepairConfig, repair_window
+    from ffcomp.kinematics import inverse, jacobian
+    from ffcomp.model.lpv import LpvModel
+
+    model = LpvModel.from_profile(profile)
+    dt = 1e-3
+    pose = np.array([0.0, 0.0, 0.03])
+    H = PulseResponses(model, dt, RepairConfig()).at(pose)
+    J = jacobian(model.geometry, pose)
+    n = 120
+    t = np.arange(n) * dt
+    xyz = np.stack([0.002 * np.clip((t - 0.06) / 0.04, 0, 1) ** 2, 0 * t, 0.03 + 4e-4 * np.clip(t / 0.06, 0, 1)], 1)
+    q = inverse(model.geometry, xyz)
+    c = q + np.random.default_rng(5).normal(0, 1e-5, (n, 3))
+    pin = np.zeros(n, bool)
+    pin[10:20] = True
+    zpin = np.zeros(n, bool)
+    zpin[20:60] = True
+    curv, ramp = {}, {}
+    for f in (1.0, 100.0):
+        cfg = replace(RepairConfig(), lift_xy_accel_factor=f)
+        dxy = (repair_window(H, c, q, pin, J, dt, cfg, zpin=zpin) - c) @ J[:2].T  # the correction's x, y
+        curv[f] = float(np.max(np.abs(np.diff(dxy[20:60], 2, axis=0))))
+        ramp[f] = float(np.max(np.abs(dxy[59] - dxy[20])))
+    assert curv[100.0] < 0.05 * curv[1.0], curv
+    assert ramp[100.0] > 1e-6, ramp  # (x and y still move during the lift)

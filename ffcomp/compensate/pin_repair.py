@@ -56,11 +56,19 @@ class RepairConfig:
     pin_z_after_hold, pin_z_before_hold : pin a move with z travel right after / right before an
         extruder-only move or dwell (a z-hop after a retraction, the move down before an unretract)
     z_only_hops : (experimental, off) the z-hop after a hold pins the nozzle's z alone to the plan,
-        its x and y free: the command pre-actuates the travel after the hop during it.  On
-        ``cube_prusa.gcode`` the simulated lag-aligned RMS falls 13.3 -> 11.2 um (default profile) and
-        16.3 -> 14.6 um (other_delta), x and y by a third; on the fidelity bench's z-hop file it rises,
-        and on other_delta the hop's segments, turning with the x/y correction while z runs at
-        ``max_z_accel``, ran 2.8 ms late.  The move down before a hold stays pinned whole.
+        its x and y free: the command pre-actuates the travel after the hop during it.  The move
+        down before a hold stays pinned whole.  With ``lift_xy_accel_factor`` 100, on
+        ``cube_prusa.gcode`` (simulated, lag-aligned RMS over the whole file) 13.3 -> 11.2 um on the
+        default profile and 16.3 -> 14.2 um on other_delta, x and y by a third to a half; but the
+        contour RMS rises 5.9 -> 6.7 / 7.6 -> 8.3 um, and over the extruded samples (93 % of the
+        file) neither moves (5.9 / 2.0 um default, 6.7 / 2.7 um other_delta): the gain is the
+        travels' own tracking, not the part's.  The fidelity bench's z-hop row: lag 0.457 -> 0.406 /
+        0.319 -> 0.236.
+    lift_xy_accel_factor : with ``z_only_hops``, the acceleration penalty of the x/y correction on
+        samples whose z alone is pinned (a lift) is this much heavier, so the correction runs
+        nearly straight there: Klipper slows the short segments of a lift at ``max_z_accel``
+        wherever they turn (centripetal junction rule), and with the factor 1 the bench's z-hop
+        row ran 2.8 ms late on other_delta (now -0.62 ms, clock error 16 um)
     edge_weight, edge_samples : the acceleration penalty is this much heavier within about this many
         samples of a pin (the firmware starts there from the plan's state)
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
@@ -83,6 +91,7 @@ class RepairConfig:
     pin_z_before_hold: bool = True
     steep_accel_factor: float = 5.0
     z_only_hops: bool = False
+    lift_xy_accel_factor: float = 100.0
 
 
 class PulseResponses:
@@ -283,6 +292,10 @@ def _frame_operator(H: np.ndarray, pins: np.ndarray, J: np.ndarray, dt_s: float,
     op.Phi = np.vstack([np.hstack([R[i][k][op.keep] for k in range(3)]) for i in range(3)])
     wd = (1.0 / cfg.accel_xy_m_s2, 1.0 / cfg.accel_xy_m_s2, 1.0 / cfg.accel_z_m_s2)
     op.wrow = [(np.sqrt(_edge_weights(pins[:, k], cfg)) * wd[k] / dt_s**2)[:, None] for k in range(3)]
+    lift = pins[:, 2] & ~pins[:, 0]  # z pinned, x and y free: the hop's segments turn with x and y
+    if cfg.lift_xy_accel_factor != 1.0 and lift.any():
+        for k in (0, 1):
+            op.wrow[k] = op.wrow[k] * np.where(lift, cfg.lift_xy_accel_factor, 1.0)[:, None]
     op.D2S = [_second_difference(op.S[k]) * op.wrow[k] for k in range(3)]
     nt = sum(op.nf)
     G = op.Phi.T @ op.Phi / cfg.err_m**2
