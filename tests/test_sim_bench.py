@@ -180,3 +180,35 @@ def test_bench_cases_include_polygon_and_z_loops_and_fit_a_smaller_bed(profile):
         assert sum(n.startswith("polygon") for n in names) == 2 and sum(n.startswith("zmove") for n in names) == 2
     z = [c for c in bench.bench_cases(small) if c.name.startswith("zmove")][0]
     assert np.ptp(z.xyz_m[:, 2]) > 0.01  # the z loop climbs
+
+
+def test_simulate_reports_the_printed_lines_apart(profile, tmp_path, capsys):
+    """``simulate_gcode`` scores the samples where the plan extrudes while it moves on their own
+    (the printed lines): the same per-sample errors as the whole report, masked; a travel-only file
+    has no such samples; the CLI prints and the JSON carries them."""
+    from ffcomp.pipeline.sim_flow import extruding_samples, simulate_gcode
+
+    lines = ["G90", "M83", "M204 S10000", "G1 Z5 F6000", "G1 X20 Y0 F9000"]
+    for x, y in ((20, 20), (0, 20), (0, 0), (20, 0)):
+        lines.append(f"G1 X{x} Y{y} E1.0")
+    lines += ["G1 X-20 Y-10 F9000", "G4 P200"]
+    g = tmp_path / "sq.gcode"
+    g.write_text("\n".join(lines) + "\n")
+    rep = simulate_gcode(profile, g, shaper="zv@62")
+    m = extruding_samples(rep.reference)
+    assert 0.3 < m.mean() < 0.9 and rep.extruded_share == pytest.approx(m.mean())
+    for r in rep.runs:
+        lag = np.sqrt(np.mean(np.sum(r.err_lag_m[m] ** 2, axis=1))) * 1e6
+        assert r.extruded_um[0] == pytest.approx(lag)
+        assert r.extruded_um[1] == pytest.approx(np.sqrt(np.mean(r.contour_m[m] ** 2)) * 1e6)
+    assert rep.runs[1].extruded_um[0] < rep.runs[0].extruded_um[0]  # the shaper helps there too
+    dry = tmp_path / "dry.gcode"
+    dry.write_text(GCODE)
+    rep = simulate_gcode(profile, dry)
+    assert rep.extruded_share == 0.0 and rep.runs[0].extruded_um is None
+    code, out, err = run(capsys, "simulate", g, "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert d["extruded_share"] > 0.3 and d["runs"][0]["extruded_lag_rms_um"] > 0
+    code, out, err = run(capsys, "simulate", g)
+    assert code == 0 and "printed lines" in out

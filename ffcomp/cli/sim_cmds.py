@@ -74,6 +74,15 @@ def simulate_cmd(
         t.add_row(r.name, *(f"{e.rms_um[j]:.1f} / {e.p95_um[j]:.1f} / {e.max_um[j]:.1f}" for j in range(3)),
                   f"{e.rms_norm_um:.1f} / {e.p95_norm_um:.1f} / {e.max_norm_um:.1f}")
     console.print(t)
+    share = rep.extruded_share
+    if share:
+        t = Table(title=f"printed lines ({share * 100:.0f} % of the samples), um", title_justify="left")
+        for col in ("run", "lag RMS", "contour RMS"):
+            t.add_column(col, justify="left" if col == "run" else "right")
+        for r in rep.runs:
+            if r.extruded_um is not None:
+                t.add_row(r.name, f"{r.extruded_um[0]:.2f}", f"{r.extruded_um[1]:.2f}")
+        console.print(t)
     console.print(f"simulated {len(rep.runs)} run(s) x {rep.reference.duration_s:.2f} s "
                   f"in {rep.wall_s:.1f} s")
     for f in files:

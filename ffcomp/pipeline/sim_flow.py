@@ -18,8 +18,8 @@ from ..sim import bench, metrics, shapers
 from ..sim.moves import Trajectory, load_gcode_trajectory, longest_piece
 from ..sim.plant import DeltaPlant
 
-__all__ = ["load_gcode_trajectory", "longest_piece", "RunResult", "SimReport", "simulate_commands",
-           "simulate_gcode", "write_sim_plots", "bench_to_dir", "virtual_measure"]
+__all__ = ["load_gcode_trajectory", "longest_piece", "RunResult", "SimReport", "extruding_samples",
+           "simulate_commands", "simulate_gcode", "write_sim_plots", "bench_to_dir", "virtual_measure"]
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,9 @@ class RunResult:
         Contour error, m.
     peak_hz, peak_um : float
         Largest peak (above 5 Hz) of the lag-aligned error's amplitude spectrum, over the axes.
+    extruded_um : (float, float) or None
+        Lag-aligned and contour RMS (um) over the samples where the plan extrudes while it moves
+        (:func:`extruding_samples`: what marks the part); None without extrusion data.
     """
 
     name: str
@@ -48,10 +51,13 @@ class RunResult:
     contour_m: np.ndarray
     peak_hz: float
     peak_um: float
+    extruded_um: tuple[float, float] | None = None
 
     def to_dict(self) -> dict:
+        ext = {} if self.extruded_um is None else {"extruded_lag_rms_um": self.extruded_um[0],
+                                                   "extruded_contour_rms_um": self.extruded_um[1]}
         return {"name": self.name, "spectrum_peak_hz": self.peak_hz, "spectrum_peak_um": self.peak_um,
-                **self.report.to_dict()}
+                **self.report.to_dict(), **ext}
 
 
 @dataclass(frozen=True)
@@ -63,10 +69,27 @@ class SimReport:
     wall_s: float
     quantized: bool
 
+    @property
+    def extruded_share(self) -> float | None:
+        """Share of the samples where the plan extrudes while it moves (None without E data)."""
+        m = extruding_samples(self.reference)
+        return None if m is None else float(np.mean(m))
+
     def to_dict(self) -> dict:
         return {"reference": self.reference.name, "duration_s": self.reference.duration_s,
                 "samples": int(self.reference.t_s.shape[0]), "quantized": self.quantized,
+                "extruded_share": self.extruded_share,
                 "sim_wall_s": self.wall_s, "runs": [r.to_dict() for r in self.runs]}
+
+
+def extruding_samples(ref: Trajectory) -> np.ndarray | None:
+    """Samples where the reference extrudes while it moves (E rises over the sample and the nozzle
+    moves faster than 1 mm/s): the printed lines.  None where the trajectory has no E."""
+    if ref.e_mm is None or len(ref.e_mm) < 2:
+        return None
+    dt = float(ref.t_s[1] - ref.t_s[0])
+    speed = np.linalg.norm(np.gradient(ref.xyz_m, axis=0), axis=1) / dt
+    return (np.gradient(ref.e_mm) > 1e-6) & (speed > 1e-3)
 
 
 def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -> RunResult:
@@ -80,7 +103,10 @@ def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -
         peak_hz, peak_um = float(f[band][k]), float(amp[band][k, ax] * 1e6)
     else:
         peak_hz = peak_um = float("nan")
-    return RunResult(name, q_cmd, xyz_act, rep, err, contour, peak_hz, peak_um)
+    m = extruding_samples(ref)
+    ext = None if m is None or not m.any() else (
+        float(np.sqrt(np.mean(np.sum(err[m] ** 2, axis=1)))) * 1e6, float(np.sqrt(np.mean(contour[m] ** 2))) * 1e6)
+    return RunResult(name, q_cmd, xyz_act, rep, err, contour, peak_hz, peak_um, ext)
 
 
 def simulate_commands(profile, ref: Trajectory, commands: dict[str, np.ndarray], *, quantize: bool = False,
@@ -219,7 +245,8 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
         # by stretch between the source's stops, each by its own time offset
         cuts = [] if margin_s > 0 else np.searchsorted(ref.t_s, _stop_times(profile, path), side="right")
         r = _reference_on_other_clock(ref.xyz_m, other.xyz_m, cuts, int(round(COMPARE_WINDOW_S / dt)))
-        ref = Trajectory(ref.name, np.arange(len(r)) * dt, _rows_at(ref.xyz_m, r), _rows_at(ref.q_m, r))
+        e = None if ref.e_mm is None else _rows_at(ref.e_mm[:, None], r)[:, 0]
+        ref = Trajectory(ref.name, np.arange(len(r)) * dt, _rows_at(ref.xyz_m, r), _rows_at(ref.q_m, r), e)
         commands = {name: (ref.q_m if name == "planned" else _rows_at(c, r)) for name, c in commands.items()}
         label = Path(compare).name
         q_other = np.vstack([other.q_m, np.repeat(other.q_m[-1:], max(len(r) - len(other.q_m), 0), axis=0)])

@@ -35,12 +35,15 @@ class Trajectory:
         Uniform times, s.
     xyz_m, q_m : ndarray, shape (N, 3)
         Nozzle reference (m) and carriage heights by inverse kinematics (m).
+    e_mm : ndarray, shape (N,), optional
+        Extruder position (mm of filament) where the reference comes from a G-code file.
     """
 
     name: str
     t_s: np.ndarray
     xyz_m: np.ndarray
     q_m: np.ndarray
+    e_mm: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -207,16 +210,16 @@ def load_gcode_trajectory(profile, path, *, split: bool = True, hold_margin_s: f
     from ..gcode.sampler import concat_blocks, sample_gcode
 
     blk = concat_blocks(sample_gcode(str(path), profile))
-    xyz, q = blk.xyz_m, blk.q_m
+    xyz, q, e = blk.xyz_m, blk.q_m, blk.e_mm
     n = int(round(hold_margin_s * blk.fs_hz))
     if n > 0:
         from ..gcode.margins import with_margins
         from ..gcode.planner import GcodePlan
 
         moves = {mv.index: mv for mv in GcodePlan(str(path), profile)}
-        xyz, q = with_margins((xyz, q), blk.move_index, moves, n)
+        xyz, q, e = with_margins((xyz, q, e), blk.move_index, moves, n)
     t = blk.t_s if len(q) == len(blk.t_s) else blk.t_s[0] + np.arange(len(q)) / blk.fs_hz
-    traj = Trajectory(Path(path).name, t, xyz, q)
+    traj = Trajectory(Path(path).name, t, xyz, q, e)
     return longest_piece(traj, profile) if split else traj
 
 
@@ -238,5 +241,6 @@ def longest_piece(traj: Trajectory, profile, pad_s: float = 0.25) -> Trajectory:
     n_pad = int(round(pad_s / dt))  # let the printer settle after the last move of the piece
     xyz = np.vstack([traj.xyz_m[sl], np.repeat(traj.xyz_m[sl][-1:], n_pad, axis=0)])
     q = np.vstack([traj.q_m[sl], np.repeat(traj.q_m[sl][-1:], n_pad, axis=0)])
+    e = None if traj.e_mm is None else np.concatenate([traj.e_mm[sl], np.repeat(traj.e_mm[sl][-1:], n_pad)])
     name = f"{traj.name}[{traj.t_s[sl][0]:.2f}-{traj.t_s[sl][-1]:.2f} s]"
-    return Trajectory(name, np.arange(len(xyz)) * dt, xyz, q)
+    return Trajectory(name, np.arange(len(xyz)) * dt, xyz, q, e)
