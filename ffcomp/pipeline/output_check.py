@@ -18,7 +18,7 @@ from ..compensate.inverse import InverseConfig, invert
 from ..gcode.margins import with_margins
 from ..gcode.sampler import concat_blocks, sample_gcode
 from ..model.lpv import LpvModel
-from ..sim.metrics import ErrorReport, evaluate_masked
+from ..sim.metrics import ErrorReport, evaluate_masked, extruding_mask
 from ..sim.plant import DeltaPlant
 from .compensate_flow import CompensationSummary, compensate_file, inv_pre_samples
 
@@ -128,8 +128,7 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
             runs += [inverse(geom, shape_cartesian(t, x, imp, imp)) for x in (X, got_x)]
     sim = DeltaPlant.from_profile(plant_profile or profile).simulate(t, np.stack(runs), hold="linear")
     # extruding while moving: E rises over the sample and the nozzle moves faster than 1 mm/s
-    speed = np.linalg.norm(np.gradient(X, axis=0), axis=1) / dt
-    ext = (np.gradient(e) > 1e-6) & (speed > 1e-3)
+    ext = extruding_mask(X, e, dt)
     reps = [evaluate_masked(t, X, sim.xyz_m[r], ext) for r in range(len(runs))]
     (none, n_ex), (exact, e_ex), (gcode, g_ex) = reps[:3]
     extruding = {"none": n_ex, "exact": e_ex, "gcode": g_ex} if ext.any() else {}

@@ -87,9 +87,7 @@ def extruding_samples(ref: Trajectory) -> np.ndarray | None:
     moves faster than 1 mm/s): the printed lines.  None where the trajectory has no E."""
     if ref.e_mm is None or len(ref.e_mm) < 2:
         return None
-    dt = float(ref.t_s[1] - ref.t_s[0])
-    speed = np.linalg.norm(np.gradient(ref.xyz_m, axis=0), axis=1) / dt
-    return (np.gradient(ref.e_mm) > 1e-6) & (speed > 1e-3)
+    return metrics.extruding_mask(ref.xyz_m, ref.e_mm, float(ref.t_s[1] - ref.t_s[0]))
 
 
 def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -> RunResult:

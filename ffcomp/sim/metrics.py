@@ -437,6 +437,13 @@ def evaluate(t_s: np.ndarray, ref: np.ndarray, act: np.ndarray, max_lag_s: float
     return _report(t_s, ref, act, lag_err, lag_s, contour_error(ref, act), grid_mm)
 
 
+def extruding_mask(xyz_m: np.ndarray, e_mm: np.ndarray, dt_s: float) -> np.ndarray:
+    """Samples where a reference extrudes while it moves (the printed lines): E rises over the
+    sample and the nozzle moves faster than 1 mm/s.  ``xyz_m`` (N, 3) in m, ``e_mm`` (N,) in mm."""
+    speed = np.linalg.norm(np.gradient(np.asarray(xyz_m, float), axis=0), axis=1) / dt_s
+    return (np.gradient(np.asarray(e_mm, float)) > 1e-6) & (speed > 1e-3)
+
+
 def evaluate_masked(t_s: np.ndarray, ref: np.ndarray, act: np.ndarray, mask: np.ndarray, max_lag_s: float = 0.02,
                     grid_mm: float = 20.0) -> tuple[ErrorReport, tuple[float, float]]:
     """:func:`evaluate`, and the lag-aligned and contour RMS (um) over the samples ``mask`` selects
