@@ -69,11 +69,8 @@ class SimReport:
     wall_s: float
     quantized: bool
 
-    @property
-    def extruded_share(self) -> float | None:
-        """Share of the samples where the plan extrudes while it moves (None without E data)."""
-        m = extruding_samples(self.reference)
-        return None if m is None else float(np.mean(m))
+    #: share of the samples where the plan extrudes while it moves (None without E data)
+    extruded_share: float | None = None
 
     def to_dict(self) -> dict:
         return {"reference": self.reference.name, "duration_s": self.reference.duration_s,
@@ -90,7 +87,8 @@ def extruding_samples(ref: Trajectory) -> np.ndarray | None:
     return metrics.extruding_mask(ref.xyz_m, ref.e_mm, float(ref.t_s[1] - ref.t_s[0]))
 
 
-def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -> RunResult:
+def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray,
+           printed: np.ndarray | None = None) -> RunResult:
     rep = metrics.evaluate(ref.t_s, ref.xyz_m, xyz_act)
     err, _ = metrics.lag_aligned_error(ref.t_s, ref.xyz_m, xyz_act)
     contour = metrics.contour_error(ref.xyz_m, xyz_act)
@@ -101,9 +99,9 @@ def _score(name: str, ref: Trajectory, q_cmd: np.ndarray, xyz_act: np.ndarray) -
         peak_hz, peak_um = float(f[band][k]), float(amp[band][k, ax] * 1e6)
     else:
         peak_hz = peak_um = float("nan")
-    m = extruding_samples(ref)
-    ext = None if m is None or not m.any() else (
-        float(np.sqrt(np.mean(np.sum(err[m] ** 2, axis=1)))) * 1e6, float(np.sqrt(np.mean(contour[m] ** 2))) * 1e6)
+    m = printed
+    ext = None if m is None or not m.any() else (float(np.sqrt(np.mean(np.sum(err[m] ** 2, axis=1)))) * 1e6,
+                                                 float(np.sqrt(np.mean(contour[m] ** 2))) * 1e6)
     return RunResult(name, q_cmd, xyz_act, rep, err, contour, peak_hz, peak_um, ext)
 
 
@@ -119,8 +117,9 @@ def simulate_commands(profile, ref: Trajectory, commands: dict[str, np.ndarray],
     res = plant.simulate(ref.t_s, cmds, steps_per_mm=profile.limits.steps_per_mm if quantize else None,
                          hold=bench.HOLD)
     wall = time.perf_counter() - t0
-    runs = tuple(_score(n, ref, res.q_cmd_m[k], res.xyz_m[k]) for k, n in enumerate(names))
-    return SimReport(ref, runs, wall, quantize)
+    printed = extruding_samples(ref)  # the printed lines, once for every run
+    runs = tuple(_score(n, ref, res.q_cmd_m[k], res.xyz_m[k], printed) for k, n in enumerate(names))
+    return SimReport(ref, runs, wall, quantize, None if printed is None else float(np.mean(printed)))
 
 
 #: how far (s) ``simulate --compare`` searches for the time offset between the two files
