@@ -28,7 +28,7 @@ import numpy as np
 from .junction import klipper_junction_deviation
 from .klipper import KlipperDelta
 
-__all__ = ["ChainLimits", "segment_limits", "junction_v2", "plan_chain"]
+__all__ = ["ChainLimits", "segment_limits", "junction_v2", "plan_chain", "trapezoids"]
 
 
 class ChainLimits:
@@ -137,6 +137,14 @@ def plan_chain(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
     dur : (n,) durations, s
     v_in, v_out : (n,) entry and exit speeds, mm/s
     """
+    t1, t2, t3, vi, vc, vo = trapezoids(dist, cruise_v2, acc, junc_v2, start_v2, end_v2)
+    return t1 + t2 + t3, vi, vo
+
+
+def trapezoids(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2: np.ndarray,
+               start_v2: float, end_v2: float) -> tuple[np.ndarray, ...]:
+    """:func:`plan_chain`'s trapezoids in full: the acceleration, cruise and deceleration times (s)
+    and the entry, cruise and exit speeds (mm/s) of every segment (the same arguments)."""
     n = len(dist)
     delta = 2.0 * dist * acc
     # junction: both cruise speeds and the rules
@@ -159,6 +167,7 @@ def plan_chain(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
     decel_d = (cruise - e_out) * half_inv
     cruise_d = np.maximum(dist - accel_d - decel_d, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (np.where(accel_d > 0, accel_d / ((vi + vc) * 0.5), 0.0) + cruise_d / vc
-             + np.where(decel_d > 0, decel_d / ((vo + vc) * 0.5), 0.0))
-    return t, vi, vo
+        t1 = np.where(accel_d > 0, accel_d / ((vi + vc) * 0.5), 0.0)
+        t2 = cruise_d / vc
+        t3 = np.where(decel_d > 0, decel_d / ((vo + vc) * 0.5), 0.0)
+    return t1, t2, t3, vi, vc, vo

@@ -28,6 +28,7 @@ from typing import Iterable, Iterator
 
 from ..errors import GcodeError
 from .klipper import KlipperPlanner
+from .klipper_chains import BLOCK, KlipperChainPlanner
 from .marlin import MarlinPlanner
 from .moves import DWELL, PlannedMove
 from .parser import MAX_MOVE_S, GcodeParser, parse_gcode
@@ -142,7 +143,7 @@ def _checked(p, moves: list[PlannedMove]) -> list[PlannedMove]:
     if not moves or moves[-1].t_end_s - moves[0].t_start_s <= MAX_MOVE_S:  # moves follow without gaps
         return moves
     for m in moves:
-        if m.accel_t_s + m.cruise_t_s + m.decel_t_s > MAX_MOVE_S and m.kind != DWELL:
+        if m.kind != DWELL and m.kind != BLOCK and m.accel_t_s + m.cruise_t_s + m.decel_t_s > MAX_MOVE_S:
             raise GcodeError(getattr(p, "path", "<gcode>"), m.lineno,
                              f"this move would last {m.duration_s:.0f} s (over {m.distance_mm:.4g} mm at up to "
                              f"{m.cruise_v_mm_s:.3g} mm/s, {m.accel_mm_s2:.3g} mm/s^2), longer than the "
@@ -176,13 +177,17 @@ class GcodePlan:
     unknown_policy : str
         What an unknown macro or G code is (``stop``, ``pass`` or ``refuse``; see
         :mod:`ffcomp.gcode.commands`).
+    chains : bool
+        Plan runs of straight moves between rests vectorised
+        (:class:`~ffcomp.gcode.klipper_chains.KlipperChainPlanner`, Klipper only): iteration then
+        yields :class:`~ffcomp.gcode.klipper_chains.MoveBlock` items among the moves.  Default False.
     **planner_kw
         Passed to the planner class.
     """
 
     def __init__(self, source, profile, *, lenient: bool = False, firmware: str | None = None,
                  arc_resolution_mm: float | None = None, start_position_mm=None,
-                 path: str | None = None, unknown_policy: str = "stop", **planner_kw):
+                 path: str | None = None, unknown_policy: str = "stop", chains: bool = False, **planner_kw):
         self.profile = profile
         self.firmware = firmware or profile.limits.planner
         if self.firmware not in PLANNERS:
@@ -201,8 +206,12 @@ class GcodePlan:
             source, **pkw, lenient=lenient, dialect=self.firmware, arc_resolution_mm=arc_resolution_mm,
             home_position_mm=(0.0, 0.0, profile.geometry.z_max_mm), start_position_mm=start_position_mm,
             unknown_policy=unknown_policy, firmware_retraction=profile.firmware_retraction)
-        self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
-                                    start_position_mm=start_position_mm, **planner_kw)
+        if chains and self.firmware == "klipper":
+            self.planner = KlipperChainPlanner(profile, path=self.parser.path, start_position_mm=start_position_mm,
+                                               **planner_kw)
+        else:
+            self.planner = make_planner(profile, firmware=self.firmware, path=self.parser.path,
+                                        start_position_mm=start_position_mm, **planner_kw)
         self._used = False
 
     @property

@@ -8,6 +8,7 @@ from operator import attrgetter
 import numpy as np
 
 from ..errors import SelfCheckError
+from ..gcode.klipper_chains import BLOCK, MoveBlock
 from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
 from ..gcode.writer import SEG_COLS
@@ -60,9 +61,14 @@ def merge(parts: list[dict], k_offsets: list[int], dt: float) -> dict:
 
 
 def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = None, head_len: int = 0,
-            name: str | None = None) -> dict:
+            name: str | None = None, chains: bool = True) -> dict:
     """The self-check's numbers (see :func:`self_check`) for the output ``path`` (a file name, or an
-    iterable of its lines named ``name``), re-planned from rest at ``start_mm``."""
+    iterable of its lines named ``name``), re-planned from rest at ``start_mm``.
+
+    ``chains``: re-plan the runs of straight moves between rests vectorised
+    (:class:`~ffcomp.gcode.klipper_chains.KlipperChainPlanner`: the same plan to about 1e-9 s, 2x
+    faster); False: move by move.
+    """
     qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
     table = _SegmentTable(segfile, head_len)
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -105,15 +111,47 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
     anchor: dict[int, float] = {}  # stream -> print time of its sample 0 in the re-planned output
     drift = {"max": 0.0, "at": 0.0, "end": 0.0}
 
-    def flush_moves():
-        if not buf:
-            return
+    rows: list = []  # (R, geo) of re-planned XYZ moves not compared yet, in order
+    n_rows = 0
+
+    def take_moves():
+        """The single moves in ``buf`` as rows."""
+        nonlocal n_rows
         mvs = [m for m in buf if m.kind == MOVE]
         buf.clear()
-        if not mvs:
-            return
-        R = np.array([scalars(m) for m in mvs], dtype=float)
-        geo = np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)
+        if mvs:
+            rows.append((np.array([scalars(m) for m in mvs], dtype=float),
+                         np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)))
+            n_rows += len(mvs)
+
+    def take_block(b: MoveBlock):
+        """A chain planned vectorised as rows."""
+        nonlocal n_rows
+        n = len(b)
+        R = np.empty((n, 8))
+        for c, col in enumerate((b.lineno, b.accel, b.start_v, b.cruise_v, b.accel_t, b.cruise_t, b.decel_t,
+                                 b.t_start)):
+            R[:, c] = col
+        geo = np.empty((n, 6))
+        geo[:, :3] = b.start[:, :3]
+        geo[:, 3:] = b.unit[:, :3]
+        rows.append((R, geo))
+        n_rows += n
+
+    def flush_rows():
+        nonlocal n_rows
+        if buf:
+            take_moves()
+        if rows:
+            R = np.concatenate([r[0] for r in rows]) if len(rows) > 1 else rows[0][0]
+            geo = np.concatenate([r[1] for r in rows]) if len(rows) > 1 else rows[0][1]
+            rows.clear()
+            n_rows = 0
+            segments(R, geo)
+
+    def segments(R: np.ndarray, geo: np.ndarray):
+        """Compare re-planned XYZ moves (rows ``R``: line, accel, start, cruise speed, the three
+        phase times, start time; ``geo``: start point and unit vector) with the intent."""
         # the segments the writer wrote, by their line in the output
         ln = R[:, 0].astype(np.int64)
         tab = table.upto(int(ln[-1]))
@@ -164,12 +202,17 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
 
     last = None
     start = tuple(start_mm or (0.0, 0.0, 0.0))  # the plan's start (ffcomp.gcode.start)
-    for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0),
+    for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0), chains=chains,
                           **({"path": name} if name else {})):
-        buf.append(last)
-        if len(buf) >= 5000:
-            flush_moves()
-    flush_moves()
+        if last.kind == BLOCK:
+            if buf:
+                take_moves()
+            take_block(last)
+        else:
+            buf.append(last)
+        if n_rows + len(buf) >= 5000:
+            flush_rows()
+    flush_rows()
     table.close()
     t_end = last.t_end_s if last is not None else 0.0
     qf.close()

@@ -1,0 +1,218 @@
+"""Klipper's plan of a long G-code file, with its runs of straight moves planned vectorised.
+
+:class:`~ffcomp.gcode.klipper.KlipperPlanner` plans move by move in Python, as Klipper does; a
+compensated file holds millions of short segments and re-planning it (the self-check) was a quarter
+of a run.  :class:`KlipperChainPlanner` gives the same plan faster where the lookahead allows a
+closed form:
+
+* A **chain** is a run of XYZ moves that starts and ends at rest: Klipper's junction between a move
+  and an extruder-only move is zero, and a dwell, ``M400``, a stop or homing flushes the lookahead
+  to rest.  With ``minimum_cruise_ratio = 0`` (the compensated file's header sets it) the plan of a
+  chain is :func:`~ffcomp.gcode.chain_plan.trapezoids` (the writer's model, equal to the move-by-move
+  planner to 1e-9 s: ``tests/test_chain_plan.py``), computed once for the whole chain.
+* Everything else goes through the move-by-move planner unchanged: extruder-only moves, chains
+  under a non-zero cruise ratio, and a chain within which the limits change
+  (``SET_VELOCITY_LIMIT``, ``M204``: its moves so far are handed to the move-by-move planner and the
+  chain continues there until the next rest).  A chain whose end points leave the workspace, or
+  whose retraction is longer than ``max_extrude_only_distance``, is handed over the same way, so
+  that the error is the move-by-move planner's own (line and message).
+* A chain longer than :data:`MAX_CHAIN` moves is handed over too (memory stays bounded).
+
+The planned chains come out as :class:`MoveBlock` objects (arrays, one row per move) among the
+:class:`~ffcomp.gcode.moves.PlannedMove` items of the other moves, in execution order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import GcodeError
+from .chain_plan import ChainLimits, junction_v2, segment_limits, trapezoids
+from .klipper import KlipperPlanner
+from .parser import MAX_MOVE_S
+
+__all__ = ["KlipperChainPlanner", "MoveBlock", "BLOCK", "MAX_CHAIN"]
+
+#: the ``kind`` of a :class:`MoveBlock`
+BLOCK = "block"
+
+#: chains longer than this (moves) are planned move by move
+MAX_CHAIN = 50_000
+
+
+class MoveBlock:
+    """A planned chain of XYZ moves, as arrays (one row per move, in execution order).
+
+    Attributes
+    ----------
+    lineno : (n,) int64
+    t_start : (n,) float, s
+    start, unit : (n, 4) float
+        (x, y, z, e) at each move's start, mm, and its direction per mm of XYZ travel.
+    distance : (n,) float, mm
+    accel : (n,) float, mm/s^2
+    start_v, cruise_v, end_v : (n,) float, mm/s
+    accel_t, cruise_t, decel_t : (n,) float, s
+    """
+
+    kind = BLOCK
+    __slots__ = ("lineno", "t_start", "start", "unit", "distance", "accel", "start_v", "cruise_v", "end_v",
+                 "accel_t", "cruise_t", "decel_t")
+
+    def __init__(self, **kw):
+        for k, v in kw.items():
+            setattr(self, k, v)
+
+    def __len__(self) -> int:
+        return len(self.lineno)
+
+    @property
+    def t_start_s(self) -> float:
+        return float(self.t_start[0])
+
+    @property
+    def t_end_s(self) -> float:
+        return float(self.t_start[-1] + self.accel_t[-1] + self.cruise_t[-1] + self.decel_t[-1])
+
+
+class KlipperChainPlanner(KlipperPlanner):
+    """:class:`~ffcomp.gcode.klipper.KlipperPlanner` with chains planned vectorised (see the module).
+
+    The same parameters and interface; :meth:`take` returns :class:`MoveBlock` items among the
+    :class:`~ffcomp.gcode.moves.PlannedMove` ones.
+    """
+
+    def __init__(self, profile, **kw):
+        super().__init__(profile, **kw)
+        self._lim = ChainLimits(profile, self.max_accel, self.square_corner_velocity)
+        self._pend: list = []  # (end x, y, z, e, speed, line) of the chain's moves
+        self._chain_start = None  # (x, y, z, e) where the pending chain starts
+        self._general = False  # the current chain is planned move by move (until the next rest)
+        self.chains = 0  # chains planned vectorised
+        self.chain_moves = 0  # their moves
+
+    # ------------------------------------------------------------------ moves
+    def move(self, end, speed: float, line) -> None:
+        sx, sy, sz, se = self.commanded_pos
+        dx, dy, dz = end[0] - sx, end[1] - sy, end[2] - sz
+        if dx * dx + dy * dy + dz * dz < 1e-18:  # extruder-only (KlipperPlanner: move_d < 1e-9)
+            if end[3] == se:  # no move at all: Klipper ignores it (the lookahead goes on through it)
+                return
+            if self._pend:
+                self._plan_pending()
+            super().move(end, speed, line)
+            self._general = False  # the next XYZ move starts from rest
+            return
+        if self._general:
+            super().move(end, speed, line)
+            return
+        if not self._pend:
+            if self.queue:  # an extruder-only move before: the chain starts from rest after it
+                super()._process()
+            if self.min_cruise_ratio != 0.0:
+                self._general = True
+                super().move(end, speed, line)
+                return
+            self._chain_start = tuple(self.commanded_pos)
+        self._pend.append((end[0], end[1], end[2], end[3], speed, line))
+        self.commanded_pos = [end[0], end[1], end[2], end[3]]
+        if len(self._pend) > MAX_CHAIN:
+            self._hand_over()
+
+    def limits(self, op, line) -> None:
+        if self._pend:  # the moves so far keep the old limits: planned move by move from here
+            self._hand_over()
+        super().limits(op, line)
+        self._lim.accel = self.max_accel
+        self._lim.jd = self.junction_deviation
+        self._lim.max_velocity = self.max_velocity
+
+    def _hand_over(self) -> None:
+        """Give the pending chain to the move-by-move planner; it plans the chain to its end."""
+        pend, self._pend = self._pend, []
+        self.commanded_pos = list(self._chain_start)
+        self._general = True
+        for x, y, z, e, speed, line in pend:
+            super().move((x, y, z, e), speed, line)
+
+    def _process(self, lazy: bool = False) -> None:
+        if self._pend:
+            self._plan_pending()
+        super()._process(lazy)
+        if not lazy:
+            self._general = False
+
+    # ------------------------------------------------------------------ the vectorised plan
+    def _plan_pending(self) -> None:
+        pend = self._pend
+        n = len(pend)
+        E = np.empty((n + 1, 5))
+        E[0, :4] = self._chain_start
+        E[1:] = [r[:5] for r in pend]
+        a, b = E[:-1, :3], E[1:, :3]
+        de = E[1:, 3] - E[:-1, 3]
+        d = b - a
+        dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+        if self._out_of_range(b) or (self.max_e_dist is not None and self._long_retraction(d, de)):
+            self._hand_over()  # the move-by-move planner raises the error, naming the line
+            return
+        self._pend = []
+        lim = self._lim
+        vmax, acc = segment_limits(lim, a, b, de)
+        speed = np.minimum(E[1:, 4], lim.max_velocity)
+        cruise_v2 = np.minimum(speed, vmax) ** 2
+        inv = 1.0 / dist
+        unit = np.empty((n, 4))
+        unit[:, :3] = d * inv[:, None]
+        unit[:, 3] = de * inv
+        jv = np.empty(n)
+        jv[0] = 0.0
+        jv[1:] = junction_v2(lim, unit[:, :3], unit[:, 3], acc, 2.0 * dist * acc)
+        t1, t2, t3, vi, vc, vo = trapezoids(dist, cruise_v2, acc, jv, 0.0, 0.0)
+        dur = t1 + t2 + t3
+        if float(dur.max()) > MAX_MOVE_S:
+            i = int(np.argmax(dur))
+            line = pend[i][5]
+            raise GcodeError(self.path, line.lineno, f"this move would last {dur[i]:.0f} s (over {dist[i]:.4g} mm at "
+                             f"up to {vc[i]:.3g} mm/s, {acc[i]:.3g} mm/s^2), longer than the {MAX_MOVE_S:g} s "
+                             "allowed for one move")
+        T = np.empty(n + 1)  # the print time, summed move by move as KlipperPlanner does
+        T[0] = self.print_time
+        T[1:] = dur
+        T = np.cumsum(T)
+        t_start, ends = T[:-1], T[1:]
+        self.out.append(MoveBlock(
+            lineno=np.fromiter((r[5].lineno for r in pend), np.int64, n), t_start=t_start, start=E[:-1, :4].copy(),
+            unit=unit, distance=dist, accel=acc, start_v=vi, cruise_v=vc, end_v=vo, accel_t=t1, cruise_t=t2,
+            decel_t=t3))
+        self.n_out += n
+        self.chains += 1
+        self.chain_moves += n
+        self.need_prime = False
+        if ends[-1] > self.print_time:
+            self.print_time = float(ends[-1])
+
+    def _out_of_range(self, end: np.ndarray) -> bool:
+        """Whether any end point breaks the delta's ``check_move`` (KlipperDelta's rules, vectorised)."""
+        k = self.kin
+        x, y, z = end[:, 0], end[:, 1], end[:, 2]
+        xy2 = x * x + y * y
+        limit = np.full(len(z), k.max_xy2)
+        above = z - k.limit_z
+        hi = above > 0
+        if hi.any():
+            d2 = k.min_arm2 - (k.min_arm_length - above[hi]) ** 2
+            if (d2 < 0).any():
+                return True
+            limit[hi] = np.minimum(limit[hi], (k.radius - np.sqrt(d2)) ** 2)
+        bad = (xy2 > limit) | (z > k.max_z) | (z < k.min_z)
+        if not bad.any():
+            return False
+        hp = k.home_position
+        home = (x == hp[0]) & (y == hp[1]) & (z >= k.min_z) & (z <= hp[2])
+        return bool((bad & ~home).any())
+
+    def _long_retraction(self, d: np.ndarray, de: np.ndarray) -> bool:
+        ext = (de != 0) & ((de < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
+        return bool(ext.any() and float(np.max(np.abs(de[ext]))) > self.max_e_dist)
+
