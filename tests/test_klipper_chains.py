@@ -157,3 +157,40 @@ def test_blocks_carry_the_klipper_fields(profile):
     plain = list(GcodePlan(lines, profile, start_position_mm=(0.0, 0.0, 5.0, 0.0)))
     np.testing.assert_allclose(b.accel_t + b.cruise_t + b.decel_t, [m.duration_s for m in plain], rtol=1e-12)
     assert functools.reduce(lambda a, m: a and m.kind == "move", plain, True)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 80))
+def test_runs_of_g1_lines_parse_as_the_line_by_line_path(seed, n):
+    """MoveRun arrays carry the same positions and speeds, bit for bit, as the line records, under
+    the state commands that change the arithmetic (G92 offsets, M82/M83, M220/M221, G91, G20)."""
+    from ffcomp.gcode.move_runs import MoveRun
+    from ffcomp.gcode.parser import parse_gcode
+    from ffcomp.gcode.records import LinearMove
+
+    rng = np.random.default_rng(seed)
+    lines = ["G28", "G1 X0 Y0 Z10 F3000"]
+    state = ["G92 X1.5 E0", "G92 E3", "M82", "M83", "M220 S150", "M221 S90", "G91", "G90", "G20", "G21",
+             "G1 F300", "G92 Z-0.25"]
+    for _ in range(n):
+        if rng.random() < 0.15:
+            lines.append(str(rng.choice(state)))
+            continue
+        x, y, z = rng.uniform(-20, 20, 3)
+        e = f" E{rng.uniform(-1, 2):.5f}" if rng.random() < 0.7 else ""
+        f = rng.choice([f"{rng.uniform(1, 300) * 60:.3f}", "6000", "0.5", "12."])
+        lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z + 20:.4f}{e} F{f}")
+    text = [ln + "\n" for ln in lines]
+
+    def moves(records):
+        out = []
+        for r in records:
+            if isinstance(r, MoveRun):
+                out += [(int(ln), tuple(e.tolist()), float(v)) for ln, e, v in zip(r.lineno, r.ends, r.speeds)]
+            elif isinstance(r.op, LinearMove):
+                out.append((r.lineno, tuple(r.op.end), r.op.speed_mm_s))
+        return out
+
+    want = moves(parse_gcode(text, lenient=True))
+    got = moves(parse_gcode(text, lenient=True).runs())
+    assert got == want

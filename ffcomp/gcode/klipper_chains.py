@@ -29,7 +29,9 @@ import numpy as np
 from ..errors import GcodeError
 from .chain_plan import ChainLimits, junction_v2, segment_limits, trapezoids
 from .klipper import KlipperPlanner
+from .move_runs import MoveRun
 from .parser import MAX_MOVE_S
+from .records import GcodeLine, LinearMove
 
 __all__ = ["KlipperChainPlanner", "MoveBlock", "BLOCK", "MAX_CHAIN"]
 
@@ -37,7 +39,7 @@ __all__ = ["KlipperChainPlanner", "MoveBlock", "BLOCK", "MAX_CHAIN"]
 BLOCK = "block"
 
 #: chains longer than this (moves) are planned move by move
-MAX_CHAIN = 50_000
+MAX_CHAIN = 20_000
 
 
 class MoveBlock:
@@ -85,7 +87,11 @@ class KlipperChainPlanner(KlipperPlanner):
     def __init__(self, profile, **kw):
         super().__init__(profile, **kw)
         self._lim = ChainLimits(profile, self.max_accel, self.square_corner_velocity)
-        self._pend: list = []  # (end x, y, z, e, speed, line) of the chain's moves
+        # the pending chain: arrays of runs ((k, 5) end x, y, z, e and speed; line numbers; raw
+        # lines) and, after them, single moves (x, y, z, e, speed, line number, raw line)
+        self._chunks: list = []
+        self._rows: list = []
+        self._n_pend = 0
         self._chain_start = None  # (x, y, z, e) where the pending chain starts
         self._general = False  # the current chain is planned move by move (until the next rest)
         self.chains = 0  # chains planned vectorised
@@ -98,7 +104,7 @@ class KlipperChainPlanner(KlipperPlanner):
         if dx * dx + dy * dy + dz * dz < 1e-18:  # extruder-only (KlipperPlanner: move_d < 1e-9)
             if end[3] == se:  # no move at all: Klipper ignores it (the lookahead goes on through it)
                 return
-            if self._pend:
+            if self._n_pend:
                 self._plan_pending()
             super().move(end, speed, line)
             self._general = False  # the next XYZ move starts from rest
@@ -106,7 +112,7 @@ class KlipperChainPlanner(KlipperPlanner):
         if self._general:
             super().move(end, speed, line)
             return
-        if not self._pend:
+        if not self._n_pend:
             if self.queue:  # an extruder-only move before: the chain starts from rest after it
                 super()._process()
             if self.min_cruise_ratio != 0.0:
@@ -114,13 +120,66 @@ class KlipperChainPlanner(KlipperPlanner):
                 super().move(end, speed, line)
                 return
             self._chain_start = tuple(self.commanded_pos)
-        self._pend.append((end[0], end[1], end[2], end[3], speed, line))
+        self._rows.append((end[0], end[1], end[2], end[3], speed, line.lineno, line.raw))
+        self._n_pend += 1
         self.commanded_pos = [end[0], end[1], end[2], end[3]]
-        if len(self._pend) > MAX_CHAIN:
+        if self._n_pend > MAX_CHAIN:
             self._hand_over()
 
+    def move_run(self, run: MoveRun) -> None:
+        """A run of parsed ``G1`` lines (:meth:`GcodeParser.runs <ffcomp.gcode.parser.GcodeParser.runs>`):
+        its XYZ moves join the pending chain as arrays; the rest goes through :meth:`move`."""
+        ends, speeds = run.ends, run.speeds
+        n = len(ends)
+        prev = np.empty((n, 3))
+        prev[0] = self.commanded_pos[:3]
+        prev[1:] = ends[:-1, :3]
+        d = ends[:, :3] - prev
+        still = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2] < 1e-18  # extruder-only or none
+        stops = np.flatnonzero(still)
+        i = 0
+        while i < n:
+            if self._general or not self._n_pend or still[i]:
+                self._one(run, i)
+                i += 1
+                continue
+            k = np.searchsorted(stops, i)
+            j = int(stops[k]) if k < stops.size else n
+            E = np.empty((j - i, 5))
+            E[:, :4] = ends[i:j]
+            E[:, 4] = speeds[i:j]
+            if self._rows:
+                self._rows_to_chunk()
+            self._chunks.append((E, run.lineno[i:j], run.raws[i:j]))
+            self._n_pend += j - i
+            self.commanded_pos = [float(v) for v in ends[j - 1]]
+            if self._n_pend > MAX_CHAIN:
+                self._hand_over()
+            i = j
+
+    def _one(self, run: MoveRun, i: int) -> None:
+        end = tuple(float(v) for v in run.ends[i])
+        speed = float(run.speeds[i])
+        op = LinearMove(tuple(self.commanded_pos), end, speed, False)
+        self.move(end, speed, GcodeLine(int(run.lineno[i]), run.raws[i], "G1", op))
+
+    def _rows_to_chunk(self) -> None:
+        rows, self._rows = self._rows, []
+        E = np.array([r[:5] for r in rows], float).reshape(-1, 5)
+        self._chunks.append((E, np.fromiter((r[5] for r in rows), np.int64, len(rows)), [r[6] for r in rows]))
+
+    def _take_pending(self) -> tuple:
+        """The pending chain (emptied): end points and speeds (n, 5), line numbers, raw lines."""
+        if self._rows:
+            self._rows_to_chunk()
+        chunks, self._chunks, self._n_pend = self._chunks, [], 0
+        if len(chunks) == 1:
+            return chunks[0]
+        return (np.concatenate([c[0] for c in chunks]), np.concatenate([c[1] for c in chunks]),
+                [r for c in chunks for r in c[2]])
+
     def limits(self, op, line) -> None:
-        if self._pend:  # the moves so far keep the old limits: planned move by move from here
+        if self._n_pend:  # the moves so far keep the old limits: planned move by move from here
             self._hand_over()
         super().limits(op, line)
         self._lim.accel = self.max_accel
@@ -129,14 +188,14 @@ class KlipperChainPlanner(KlipperPlanner):
 
     def _hand_over(self) -> None:
         """Give the pending chain to the move-by-move planner; it plans the chain to its end."""
-        pend, self._pend = self._pend, []
+        E, lineno, raws = self._take_pending()
         self.commanded_pos = list(self._chain_start)
         self._general = True
-        for x, y, z, e, speed, line in pend:
-            super().move((x, y, z, e), speed, line)
+        for r, ln, raw in zip(E.tolist(), lineno.tolist(), raws):
+            super().move(tuple(r[:4]), r[4], GcodeLine(ln, raw, "G1", None))
 
     def _process(self, lazy: bool = False) -> None:
-        if self._pend:
+        if self._n_pend:
             self._plan_pending()
         super()._process(lazy)
         if not lazy:
@@ -144,19 +203,20 @@ class KlipperChainPlanner(KlipperPlanner):
 
     # ------------------------------------------------------------------ the vectorised plan
     def _plan_pending(self) -> None:
-        pend = self._pend
-        n = len(pend)
+        P, lineno, raws = self._take_pending()
+        n = len(P)
         E = np.empty((n + 1, 5))
         E[0, :4] = self._chain_start
-        E[1:] = [r[:5] for r in pend]
+        E[1:] = P
         a, b = E[:-1, :3], E[1:, :3]
         de = E[1:, 3] - E[:-1, 3]
         d = b - a
         dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
         if self._out_of_range(b) or (self.max_e_dist is not None and self._long_retraction(d, de)):
-            self._hand_over()  # the move-by-move planner raises the error, naming the line
+            self._chunks = [(P, lineno, raws)]  # the move-by-move planner raises the error, naming the line
+            self._n_pend = n
+            self._hand_over()
             return
-        self._pend = []
         lim = self._lim
         vmax, acc = segment_limits(lim, a, b, de)
         speed = np.minimum(E[1:, 4], lim.max_velocity)
@@ -172,17 +232,16 @@ class KlipperChainPlanner(KlipperPlanner):
         dur = t1 + t2 + t3
         if float(dur.max()) > MAX_MOVE_S:
             i = int(np.argmax(dur))
-            line = pend[i][5]
-            raise GcodeError(self.path, line.lineno, f"this move would last {dur[i]:.0f} s (over {dist[i]:.4g} mm at "
-                             f"up to {vc[i]:.3g} mm/s, {acc[i]:.3g} mm/s^2), longer than the {MAX_MOVE_S:g} s "
-                             "allowed for one move")
+            raise GcodeError(self.path, int(lineno[i]), f"this move would last {dur[i]:.0f} s (over "
+                             f"{dist[i]:.4g} mm at up to {vc[i]:.3g} mm/s, {acc[i]:.3g} mm/s^2), longer than the "
+                             f"{MAX_MOVE_S:g} s allowed for one move")
         T = np.empty(n + 1)  # the print time, summed move by move as KlipperPlanner does
         T[0] = self.print_time
         T[1:] = dur
         T = np.cumsum(T)
         t_start, ends = T[:-1], T[1:]
         self.out.append(MoveBlock(
-            lineno=np.fromiter((r[5].lineno for r in pend), np.int64, n), t_start=t_start, start=E[:-1, :4].copy(),
+            lineno=lineno, t_start=t_start, start=E[:-1, :4].copy(),
             unit=unit, distance=dist, accel=acc, start_v=vi, cruise_v=vc, end_v=vo, accel_t=t1, cruise_t=t2,
             decel_t=t3))
         self.n_out += n

@@ -44,9 +44,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
+import numpy as np
+
 from ..errors import GcodeError
 from .arcs import arc_travel, offset_from_radius, plan_arc
 from .commands import BAKED_STOPS, PASS, STATE, STOP, TABLE, UNKNOWN, UNKNOWN_POLICIES, classify
+from .move_runs import RUN_LINE, RUN_MAX, to_run
 from .records import (
     ArcMove,
     Dwell,
@@ -253,11 +256,31 @@ class GcodeParser:
 
     # ------------------------------------------------------------------ iteration
     def __iter__(self) -> Iterator[GcodeLine]:
+        return self._iter(False)
+
+    def runs(self) -> Iterator:
+        """Iterate as usual, except that consecutive plain ``G1 X Y Z [E] F`` lines come as one
+        :class:`~ffcomp.gcode.move_runs.MoveRun` (arrays; the same positions and speeds as their
+        records would carry)."""
+        return self._iter(True)
+
+    def _iter(self, runs: bool) -> Iterator:
         handlers = self._handlers
         lineno = 0
+        match = RUN_LINE.match if runs else None
+        run: list = []  # (line number, raw line, match) of the pending run
         for raw in _without_bom(self._lines):
             lineno += 1
             self.lines_read = lineno
+            if match is not None:
+                m = match(raw)
+                if m is not None:
+                    run.append((lineno, raw, m))
+                    if len(run) >= RUN_MAX:
+                        yield from self._run_records(run)
+                    continue
+                if run:
+                    yield from self._run_records(run)
             # fast path: plain "G1 ..." / "G0 ..." lines with no comment, checksum or compact words
             if len(raw) > MAX_LINE_CHARS:
                 yield self._bad(lineno, raw[:200], "", f"line longer than {MAX_LINE_CHARS} characters: "
@@ -302,6 +325,47 @@ class GcodeParser:
             elif cmd == "G28" and self.first_home_line is None:
                 self.first_home_line = lineno
             yield GcodeLine(lineno, raw, cmd, op)
+        if run:
+            yield from self._run_records(run)
+
+    def _run_records(self, run: list) -> Iterator:
+        """The pending run (emptied) as one :class:`~ffcomp.gcode.move_runs.MoveRun`, or line by line
+        where the arithmetic is not the plain case."""
+        rows = run[:]
+        run.clear()
+        if self.absolute_coord and self.first_motion_line is not None:
+            r = to_run(rows, self.last_position, self.base_position, self._e_relative(), self.extrude_factor,
+                       self.unit, self.speed_factor)
+            if self._slow_ok(r):
+                self.last_position = [float(v) for v in r.ends[-1]]
+                self.speed = float(r.speeds[-1])
+                yield r
+                return
+        for lineno, raw, _ in rows:  # the fast path of _iter, line by line
+            try:
+                op = self._move(raw[3:].split(), False)
+            except _LineError as e:
+                yield self._bad(lineno, raw, "G1", str(e))
+                continue
+            if self.first_motion_line is None:
+                self._first_motion(lineno, op)
+            yield GcodeLine(lineno, raw, "G1", op)
+
+    def _slow_ok(self, r) -> bool:
+        """Whether every slow line of run ``r`` passes :meth:`_check_slow` (else the lines go one by one
+        and the failing one raises)."""
+        v = r.speeds
+        slow = v < _SLOW_CHECK_MM_S
+        if not slow.any():
+            return True
+        if float(v.min()) <= 0.0:
+            return False
+        prev = np.vstack([r.start, r.ends[:-1]])[slow]
+        d = r.ends[slow] - prev
+        dist = np.sqrt(d[:, 0] ** 2 + d[:, 1] ** 2 + d[:, 2] ** 2)
+        dist = np.where(dist > 0, dist, np.abs(d[:, 3]))
+        t = dist / v[slow]
+        return not bool(np.any(t > MAX_MOVE_S) or np.any((v[slow] < MIN_FEED_MM_S) & (t > MAX_SLOW_MOVE_S)))
 
     def _first_motion(self, lineno: int, op) -> None:
         if isinstance(op, ArcMove) or (isinstance(op, LinearMove) and op.start[:3] != op.end[:3]):

@@ -30,6 +30,7 @@ from ..errors import GcodeError
 from .klipper import KlipperPlanner
 from .klipper_chains import BLOCK, KlipperChainPlanner
 from .marlin import MarlinPlanner
+from .move_runs import MoveRun
 from .moves import DWELL, PlannedMove
 from .parser import MAX_MOVE_S, GcodeParser, parse_gcode
 from .records import ArcMove, Dwell, FirmwareMove, GcodeLine, Home, LimitsChange, LinearMove, ModeChange, Stop, Sync
@@ -75,6 +76,10 @@ def _nothing(p, op, line) -> None:
     return None
 
 
+def _move_run(p, run: MoveRun, _line) -> None:
+    p.move_run(run)
+
+
 _OPS = {
     LinearMove: _linear,
     FirmwareMove: _linear,
@@ -85,6 +90,7 @@ _OPS = {
     Stop: _stop,
     LimitsChange: _limits,
     ModeChange: _nothing,
+    MoveRun: _move_run,
 }
 
 
@@ -222,7 +228,10 @@ class GcodePlan:
         if self._used:
             raise RuntimeError("a GcodePlan can be iterated only once (it streams its source)")
         self._used = True
-        yield from _run(self.planner, self.parser)
+        if isinstance(self.planner, KlipperChainPlanner):  # runs of G1 lines parsed as arrays
+            yield from _run(self.planner, self.parser.runs())
+        else:
+            yield from _run(self.planner, self.parser)
 
 
 def plan_gcode(source, profile, **kw) -> GcodePlan:

@@ -147,7 +147,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
             geo = np.concatenate([r[1] for r in rows]) if len(rows) > 1 else rows[0][1]
             rows.clear()
             n_rows = 0
-            segments(R, geo)
+            for i in range(0, len(R), 5000):  # (a long chain: memory stays bounded)
+                segments(R[i:i + 5000], geo[i:i + 5000])
 
     def segments(R: np.ndarray, geo: np.ndarray):
         """Compare re-planned XYZ moves (rows ``R``: line, accel, start, cruise speed, the three
