@@ -122,6 +122,18 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
             last = qc[-1:]
             qs.append(qc[(-k) % 10::10])
             k += len(qc)
+        if shape and lat is not None and last is not None:
+            # the dither may stop up to two steps from the final command: settle on its nearest step
+            # within the last sample, so the machine ends where the plain stream does
+            miss = np.rint(last[0] * 1e3 * spm).astype(np.int64) - np.asarray(lat, np.int64)
+            if miss.any():
+                ev = {}
+                for i, name in enumerate(STEPPERS):
+                    c = int(abs(miss[i]))
+                    t = (k - 1) * dt + (np.arange(c) + 1.0) * dt / (c + 1)
+                    ev[name] = (t, np.full(c, np.sign(miss[i]), np.int8))
+                    n_steps += c
+                sink.push_chunk(ev)
         summ.print_time_s = k * dt
         summ.restarts = summ_c.restarts
         summ.queue_lines = sink.finish()
