@@ -150,24 +150,29 @@ def trapezoids(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
     # junction: both cruise speeds and the rules
     J = np.empty(n)
     J[0] = min(junc_v2[0], cruise_v2[0], start_v2)
-    J[1:] = np.minimum.reduce([junc_v2[1:], cruise_v2[1:], cruise_v2[:-1]])
+    np.minimum(np.minimum(junc_v2[1:], cruise_v2[1:]), cruise_v2[:-1], out=J[1:])
     # forward: ms_i = min(J_i, ms_{i-1} + delta_{i-1}) = S_i + cummin(J_k - S_k)
-    S = np.concatenate([[0.0], np.cumsum(delta)])
-    ms = S[:-1] + np.minimum.accumulate(J - S[:-1])
+    S = np.empty(n + 1)
+    S[0] = 0.0
+    np.cumsum(delta, out=S[1:])
+    S0 = S[:-1]
+    ms = S0 + np.minimum.accumulate(J - S0)
     # backward: s_i = min(ms_i, s_{i+1} + delta_i), s_n = end_v2
-    tail = np.concatenate([ms + S[:-1], [end_v2 + S[-1]]])
+    tail = np.empty(n + 1)
+    np.add(ms, S0, out=tail[:-1])
+    tail[-1] = end_v2 + S[-1]
     sv = np.minimum.accumulate(tail[::-1])[::-1] - S
     s_in, s_out = sv[:-1], sv[1:]
     cruise = np.minimum((s_in + s_out + delta) * 0.5, cruise_v2)
-    cruise = np.maximum(cruise, s_in)
+    np.maximum(cruise, s_in, out=cruise)
     e_out = np.minimum(s_out, cruise)
     vi, vc, vo = np.sqrt(np.maximum(s_in, 0)), np.sqrt(cruise), np.sqrt(np.maximum(e_out, 0))
     half_inv = 0.5 / acc
     accel_d = (cruise - s_in) * half_inv
     decel_d = (cruise - e_out) * half_inv
     cruise_d = np.maximum(dist - accel_d - decel_d, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = np.where(accel_d > 0, accel_d / ((vi + vc) * 0.5), 0.0)
-        t2 = cruise_d / vc
-        t3 = np.where(decel_d > 0, decel_d / ((vo + vc) * 0.5), 0.0)
+    # (divisions only where they are defined: no floating-point state to save and restore)
+    t1 = np.divide(accel_d, (vi + vc) * 0.5, out=np.zeros(n), where=accel_d > 0)
+    t2 = np.divide(cruise_d, vc, out=np.full(n, np.inf), where=vc > 0)
+    t3 = np.divide(decel_d, (vo + vc) * 0.5, out=np.zeros(n), where=decel_d > 0)
     return t1, t2, t3, vi, vc, vo
