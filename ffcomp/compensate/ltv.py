@@ -60,23 +60,34 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
         Vinv, g1, g2 = take(Vinv), take(g1), take(g2)
         scale = 2.0
     n_m = lam.shape[1]
-    # inputs per segment incl. the first sample of the next one (held at the end of the data)
+    # the samples run along the last axes (segment, mode or channel, sample, run): few, wide
+    # products instead of one tiny product per sample.  Inputs per segment incl. the first sample
+    # of the next one (held at the end of the data), k and k + 1
     wp = np.concatenate([w, np.repeat(w[-1:], S * seg + 1 - N, 0)])
-    idx = np.arange(S)[:, None] * seg + np.arange(seg + 1)[None, :]
-    ws = wp[idx]  # (S, seg+1, m, R)
-    # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1: one real matrix product
-    # (real and imaginary parts stacked) over [w_k; w_{k+1}]
-    G = np.concatenate([g1 - g2, g2], axis=2)  # (S, n_m, 2m)
-    G = np.concatenate([G.real, G.imag], axis=1)  # (S, 2 n_m, 2m)
-    Wk = np.concatenate([ws[:, :-1], ws[:, 1:]], axis=2)  # (S, seg, 2m, R)
-    vri = np.matmul(G[:, None], Wk)  # (S, seg, 2 n_m, R)
-    v = vri[:, :, :n_m] + 1j * vri[:, :, n_m:]
+
+    def per_segment(a):  # (S * seg, m, R) -> (S, m, seg * R)
+        return a.reshape(S, seg, m_in, R).transpose(0, 2, 1, 3).reshape(S, m_in, seg * R)
+
+    # modal forcing v_k = g1 w_k + g2 (w_{k+1} - w_k), k = 0..seg-1: real products with the real
+    # and imaginary parts stacked
+    GA = np.concatenate([(g1 - g2).real, (g1 - g2).imag], axis=1)  # (S, 2 n_m, m)
+    GB = np.concatenate([g2.real, g2.imag], axis=1)
+    vri = np.matmul(GA, per_segment(wp[:-1]))
+    vri += np.matmul(GB, per_segment(wp[1:]))
+    vri = vri.reshape(S, 2 * n_m, seg, R)
+    v = vri[:, :n_m] + 1j * vri[:, n_m:]  # (S, n_m, seg, R)
     e = np.exp(lam * dt_s)  # (S, n_m)
-    # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j, k = 0..seg
-    powers = e[:, None, :] ** np.arange(seg + 1)[None, :, None]  # (S, seg+1, n_m)
-    zs = np.zeros((S, seg + 1, n_m, R), complex)
-    for k in range(1, seg + 1):
-        zs[:, k] = zs[:, k - 1] * e[:, :, None] + v[:, k - 1]
+    # powers e^k, k = 0..seg, by repeated products
+    powers = np.empty((S, n_m, seg + 1), complex)
+    powers[:, :, 0] = 1.0
+    powers[:, :, 1:] = e[:, :, None]
+    np.cumprod(powers, axis=2, out=powers)
+    # zero-state response z_k = sum_{j<k} e^(k-1-j) v_j = e^(k-1) sum_{j<k} v_j e^(-j), k = 0..seg:
+    # one running sum (a mode decays by at most exp(-sigma seg dt) over a segment: within range)
+    zs = np.empty((S, n_m, seg + 1, R), complex)
+    zs[:, :, 0] = 0.0
+    np.cumsum(v / powers[:, :, :seg, None], axis=2, out=zs[:, :, 1:])
+    zs[:, :, 1:] *= powers[:, :, :seg, None]
     # hand the physical state from segment to segment
     xs = np.empty((S, n, R))
     if x0 is None:
@@ -84,18 +95,18 @@ def simulate_piecewise(A: np.ndarray, B: np.ndarray, w: np.ndarray, dt_s: float,
     else:
         x = np.asarray(x0, float).reshape(n, -1) * np.ones((1, R))
     Ve = Vfull * scale
+    p_end, z_end = powers[:, :, seg, None], zs[:, :, seg]
     for s_ in range(S):
         xs[s_] = x
-        z0 = Vinv[s_] @ x
-        x = (Ve[s_] @ (powers[s_, seg][:, None] * z0 + zs[s_, seg])).real
+        x = (Ve[s_] @ (p_end[s_] * (Vinv[s_] @ x) + z_end[s_])).real
     z0 = np.einsum("snm,smr->snr", Vinv, xs)  # modal start states
-    Z = powers[..., None] * z0[:, None] + zs  # (S, seg+1, n_m, R)
+    Z = powers[..., None] * z0[:, :, None] + zs  # (S, n_m, seg+1, R)
     # the real part of V Z, as one real product: [Re V, -Im V] [Re Z; Im Z]
     Vri = np.concatenate([Ve.real, -Ve.imag], axis=2)  # (S, n, 2 n_m)
-    Zri = np.concatenate([Z[:, :seg].real, Z[:, :seg].imag], axis=2)  # (S, seg, 2 n_m, R)
-    X = np.matmul(Vri[:, None], Zri).reshape(S * seg, n, R)
+    Zri = np.concatenate([Z[:, :, :seg].real, Z[:, :, :seg].imag], axis=1).reshape(S, 2 * n_m, seg * R)
+    X = np.matmul(Vri, Zri).reshape(S, n, seg, R).transpose(0, 2, 1, 3).reshape(S * seg, n, R)
     k_end = N - (S - 1) * seg  # sample N inside the last segment (input held after the data)
-    x_end = (Ve[-1] @ Z[-1, k_end]).real
+    x_end = (Ve[-1] @ Z[-1, :, k_end]).real
     if one:
         return X[:N, :, 0], x_end[:, 0]
     return X[:N], x_end
