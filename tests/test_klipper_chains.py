@@ -44,39 +44,39 @@ def _assert_same(lines, profile):
     return planner
 
 
+#: the other lines of a random file: (share of all lines, maker(rng, position))
+_OTHER_LINES = [
+    (0.08, lambda rng, p: f"G1 E{rng.choice([-0.8, 0.8, 0.05]):.5f} F{rng.choice([1800, 2400]):d}"),
+    (0.05, lambda rng, p: f"G4 P{rng.choice([0, 1, 20]):d}"),
+    (0.04, lambda rng, p: f"SET_VELOCITY_LIMIT ACCEL={rng.choice([2000, 5000, 20000]):d}"),
+    (0.02, lambda rng, p: f"SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO={rng.choice([0, 0, 0.5]):g}"),
+    (0.02, lambda rng, p: f"M204 S{rng.choice([1500, 8000]):d}"),
+    (0.02, lambda rng, p: "M400"),
+    (0.02, lambda rng, p: f"G1 X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f} F6000"),  # a zero-length move
+    (0.02, lambda rng, p: "G92 E0"),
+    (0.03, lambda rng, p: "; a comment"),
+]
+
+
 def _random_file(rng, n, radius, mcr, z_share):
-    """A file of the kinds of lines a compensated output holds (and some it does not)."""
+    """A file of the kinds of lines a compensated output holds (and some it does not): 70 % moves."""
     lines = [f"SET_VELOCITY_LIMIT ACCEL={rng.choice([3000, 10000, 1e5]):g} MINIMUM_CRUISE_RATIO={mcr:g} "
              f"SQUARE_CORNER_VELOCITY={rng.choice([5, 20, 100]):g}", "M83"]
     p = np.array([0.0, 0.0, 5.0])
+    edges = 0.70 + np.cumsum([share for share, _ in _OTHER_LINES])
     for _ in range(n):
         u = rng.random()
-        if u < 0.70:
-            step = rng.normal(size=3) * rng.uniform(0.01, 3.0)
-            step[2] *= z_share
-            p = np.round(p + step, 4)
-            p[:2] = np.clip(p[:2], -0.6 * radius, 0.6 * radius)
-            p[2] = np.clip(p[2], 0.3, 150.0)
-            e = f" E{rng.uniform(-0.05, 0.2):.5f}" if rng.random() < 0.7 else ""
-            lines.append(f"G1 X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f}{e} F{rng.uniform(3, 300) * 60:.3f}")
-        elif u < 0.78:
-            lines.append(f"G1 E{rng.choice([-0.8, 0.8, 0.05]):.5f} F{rng.choice([1800, 2400]):d}")
-        elif u < 0.83:
-            lines.append(f"G4 P{rng.choice([0, 1, 20]):d}")
-        elif u < 0.87:
-            lines.append(f"SET_VELOCITY_LIMIT ACCEL={rng.choice([2000, 5000, 20000]):d}")
-        elif u < 0.89:
-            lines.append(f"SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO={rng.choice([0, 0, 0.5]):g}")
-        elif u < 0.91:
-            lines.append(f"M204 S{rng.choice([1500, 8000]):d}")
-        elif u < 0.93:
-            lines.append("M400")
-        elif u < 0.95:
-            lines.append(f"G1 X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f} F6000")  # a zero-length move
-        elif u < 0.97:
-            lines.append("G92 E0")
-        else:
-            lines.append("; a comment")
+        if u >= 0.70:
+            k = min(int(np.searchsorted(edges, u, side="right")), len(_OTHER_LINES) - 1)
+            lines.append(_OTHER_LINES[k][1](rng, p))
+            continue
+        step = rng.normal(size=3) * rng.uniform(0.01, 3.0)
+        step[2] *= z_share
+        p = np.round(p + step, 4)
+        p[:2] = np.clip(p[:2], -0.6 * radius, 0.6 * radius)
+        p[2] = np.clip(p[2], 0.3, 150.0)
+        e = f" E{rng.uniform(-0.05, 0.2):.5f}" if rng.random() < 0.7 else ""
+        lines.append(f"G1 X{p[0]:.4f} Y{p[1]:.4f} Z{p[2]:.4f}{e} F{rng.uniform(3, 300) * 60:.3f}")
     return lines
 
 
