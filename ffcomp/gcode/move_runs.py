@@ -19,8 +19,8 @@ import numpy as np
 __all__ = ["RUN_LINE", "RUN_MAX", "MoveRun", "to_run"]
 
 #: a line a run takes: all of X, Y, Z and F, an optional E, plain decimals, nothing else
-RUN_LINE = re.compile(r"G1 X(-?\d+(?:\.\d*)?) Y(-?\d+(?:\.\d*)?) Z(-?\d+(?:\.\d*)?)(?: E(-?\d+(?:\.\d*)?))? "
-                      r"F(\d*\.?\d+|\d+\.)\r?\n?\Z")
+_NUM = r"(-?[0-9]+(?:\.[0-9]*)?)"  # ASCII digits only (``\d`` would take any script's digits)
+RUN_LINE = re.compile(rf"G1 X{_NUM} Y{_NUM} Z{_NUM}(?: E{_NUM})? F([0-9]*\.?[0-9]+|[0-9]+\.)\r?\n?\Z")
 
 #: lines per run at most (memory and latency stay bounded)
 RUN_MAX = 4096

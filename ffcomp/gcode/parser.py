@@ -274,7 +274,7 @@ class GcodeParser:
             self.lines_read = lineno
             if match is not None:
                 m = match(raw)
-                if m is not None:
+                if m is not None and len(raw) <= MAX_LINE_CHARS:
                     run.append((lineno, raw, m))
                     if len(run) >= RUN_MAX:
                         yield from self._run_records(run)
