@@ -178,7 +178,7 @@ def test_runs_of_g1_lines_parse_as_the_line_by_line_path(seed, n):
             continue
         x, y, z = rng.uniform(-20, 20, 3)
         e = f" E{rng.uniform(-1, 2):.5f}" if rng.random() < 0.7 else ""
-        f = rng.choice([f"{rng.uniform(1, 300) * 60:.3f}", "6000", "0.5", "12."])
+        f = rng.choice([f"{rng.uniform(1, 300) * 60:.3f}", "6000", "0.5", "12.", "0", "0.001"])
         lines.append(f"G1 X{x:.4f} Y{y:.4f} Z{z + 20:.4f}{e} F{f}")
     text = [ln + "\n" for ln in lines]
 
@@ -189,6 +189,8 @@ def test_runs_of_g1_lines_parse_as_the_line_by_line_path(seed, n):
                 out += [(int(ln), tuple(e.tolist()), float(v)) for ln, e, v in zip(r.lineno, r.ends, r.speeds)]
             elif isinstance(r.op, LinearMove):
                 out.append((r.lineno, tuple(r.op.end), r.op.speed_mm_s))
+            elif r.error is not None:  # (lenient: a refused line, e.g. too slow to finish)
+                out.append((r.lineno, r.error))
         return out
 
     want = moves(parse_gcode(text, lenient=True))
