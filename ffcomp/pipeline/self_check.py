@@ -105,48 +105,19 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         batch_cu.clear()
         batch_abs.clear()
 
-    scalars = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
-                         "decel_t_s", "t_start_s")
-    buf: list = []
     anchor: dict[int, float] = {}  # stream -> print time of its sample 0 in the re-planned output
     drift = {"max": 0.0, "at": 0.0, "end": 0.0}
-
     rows: list = []  # (R, geo) of re-planned XYZ moves not compared yet, in order
-    n_rows = 0
-
-    def take_moves():
-        """The single moves in ``buf`` as rows."""
-        nonlocal n_rows
-        mvs = [m for m in buf if m.kind == MOVE]
-        buf.clear()
-        if mvs:
-            rows.append((np.array([scalars(m) for m in mvs], dtype=float),
-                         np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float)))
-            n_rows += len(mvs)
-
-    def take_block(b: MoveBlock):
-        """A chain planned vectorised as rows."""
-        nonlocal n_rows
-        n = len(b)
-        R = np.empty((n, 8))
-        for c, col in enumerate((b.lineno, b.accel, b.start_v, b.cruise_v, b.accel_t, b.cruise_t, b.decel_t,
-                                 b.t_start)):
-            R[:, c] = col
-        geo = np.empty((n, 6))
-        geo[:, :3] = b.start[:, :3]
-        geo[:, 3:] = b.unit[:, :3]
-        rows.append((R, geo))
-        n_rows += n
+    buf: list = []  # single re-planned moves not turned into rows yet
 
     def flush_rows():
-        nonlocal n_rows
         if buf:
-            take_moves()
+            rows.append(_move_rows(buf))
+            buf.clear()
         if rows:
             R = np.concatenate([r[0] for r in rows]) if len(rows) > 1 else rows[0][0]
             geo = np.concatenate([r[1] for r in rows]) if len(rows) > 1 else rows[0][1]
             rows.clear()
-            n_rows = 0
             for i in range(0, len(R), 5000):  # (a long chain: memory stays bounded)
                 segments(R[i:i + 5000], geo[i:i + 5000])
 
@@ -202,17 +173,22 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         flush()
 
     last = None
+    n_rows = 0
     start = tuple(start_mm or (0.0, 0.0, 0.0))  # the plan's start (ffcomp.gcode.start)
     for last in GcodePlan(path, profile, lenient=True, start_position_mm=(*start, 0.0), chains=chains,
                           **({"path": name} if name else {})):
         if last.kind == BLOCK:
             if buf:
-                take_moves()
-            take_block(last)
+                rows.append(_move_rows(buf))
+                buf.clear()
+            rows.append(_block_rows(last))
+            n_rows += len(last)
         else:
             buf.append(last)
-        if n_rows + len(buf) >= 5000:
+            n_rows += 1
+        if n_rows >= 5000:
             flush_rows()
+            n_rows = 0
     flush_rows()
     table.close()
     t_end = last.t_end_s if last is not None else 0.0
@@ -262,6 +238,31 @@ def shape_limit_um(opts) -> float:
     point placement tolerance ``--tol-um`` itself allows (a carriage moves up to about twice the
     nozzle's distance, plus the firmware's ramps)."""
     return float(max(opts.self_check_tol_um, 3.0 * opts.tol_um))
+
+
+_SCALARS = attrgetter("lineno", "accel_mm_s2", "start_v_mm_s", "cruise_v_mm_s", "accel_t_s", "cruise_t_s",
+                      "decel_t_s", "t_start_s")
+
+
+def _move_rows(moves: list) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of re-planned XYZ moves for the comparison: ``R`` (line, accel, start and cruise speed,
+    the three phase times, start time) and ``geo`` (start point and unit vector); other kinds are
+    left out."""
+    mvs = [m for m in moves if m.kind == MOVE]
+    return (np.array([_SCALARS(m) for m in mvs], dtype=float).reshape(-1, 8),
+            np.array([m.start_mm[:3] + m.unit[:3] for m in mvs], dtype=float).reshape(-1, 6))
+
+
+def _block_rows(b: MoveBlock) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_move_rows` of a chain planned at once."""
+    R = np.empty((len(b), 8))
+    for c, col in enumerate((b.lineno, b.accel, b.start_v, b.cruise_v, b.accel_t, b.cruise_t, b.decel_t,
+                             b.t_start)):
+        R[:, c] = col
+    geo = np.empty((len(b), 6))
+    geo[:, :3] = b.start[:, :3]
+    geo[:, 3:] = b.unit[:, :3]
+    return R, geo
 
 
 class _SegmentTable:
