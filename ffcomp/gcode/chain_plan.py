@@ -28,7 +28,7 @@ import numpy as np
 from .junction import klipper_junction_deviation
 from .klipper import KlipperDelta
 
-__all__ = ["ChainLimits", "segment_limits", "junction_v2", "plan_chain", "trapezoids"]
+__all__ = ["ChainLimits", "segment_limits", "extruder_limited", "junction_v2", "plan_chain", "trapezoids"]
 
 
 class ChainLimits:
@@ -83,12 +83,19 @@ def segment_limits(lim: ChainLimits, start: np.ndarray, end: np.ndarray, de: np.
         acc[slow] = np.minimum(acc[slow], lim.cfg_accel * r)
     with np.errstate(divide="ignore", invalid="ignore"):
         er = np.where(dist > 0, de / dist, 0.0)
-    ext = (de != 0) & ((er < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
+    ext = extruder_limited(d, de)
     if ext.any():
         inv = 1.0 / np.abs(er[ext])
         vmax[ext] = np.minimum(vmax[ext], lim.max_e_velocity * inv)
         acc[ext] = np.minimum(acc[ext], lim.max_e_accel * inv)
     return vmax, acc
+
+
+def extruder_limited(d: np.ndarray, de: np.ndarray) -> np.ndarray:
+    """The segments Klipper's extruder ``check_move`` limits (and checks against
+    ``max_extrude_only_distance``): retractions and extrusion without XY travel.  ``d``: (n, 3) XYZ
+    travel, ``de``: (n,) extrusion, mm."""
+    return (de != 0) & ((de < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
 
 
 def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.ndarray,

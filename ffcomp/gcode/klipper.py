@@ -115,6 +115,28 @@ class KlipperDelta:
     def set_position(self) -> None:
         self.limit_xy2 = -1.0
 
+    def out_of_range(self, end) -> bool:
+        """Whether any of the end points ``end`` ((n, 3) array, mm) is one :meth:`check_move` refuses
+        (the same rules on arrays, for the chain planner)."""
+        import numpy as np
+
+        x, y, z = end[:, 0], end[:, 1], end[:, 2]
+        xy2 = x * x + y * y
+        limit = np.full(len(z), self.max_xy2)
+        above = z - self.limit_z
+        hi = above > 0
+        if hi.any():
+            d2 = self.min_arm2 - (self.min_arm_length - above[hi]) ** 2
+            if (d2 < 0).any():
+                return True
+            limit[hi] = np.minimum(limit[hi], (self.radius - np.sqrt(d2)) ** 2)
+        bad = (xy2 > limit) | (z > self.max_z) | (z < self.min_z)
+        if not bad.any():
+            return False
+        hp = self.home_position
+        home = (x == hp[0]) & (y == hp[1]) & (z >= self.min_z) & (z <= hp[2])
+        return bool((bad & ~home).any())
+
     def check_move(self, m: _Move) -> str | None:
         """Apply the limits to ``m``; return an error message if the move is out of range."""
         end = m.end

@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import GcodeError
-from .chain_plan import ChainLimits, junction_v2, segment_limits, trapezoids
+from .chain_plan import ChainLimits, extruder_limited, junction_v2, segment_limits, trapezoids
 from .klipper import KlipperPlanner
 from .move_runs import MoveRun
 from .parser import MAX_MOVE_S
@@ -212,7 +212,9 @@ class KlipperChainPlanner(KlipperPlanner):
         de = E[1:, 3] - E[:-1, 3]
         d = b - a
         dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
-        if self._out_of_range(b) or (self.max_e_dist is not None and self._long_retraction(d, de)):
+        ext = extruder_limited(d, de)
+        if self.kin.out_of_range(b) or (self.max_e_dist is not None and ext.any()
+                                        and float(np.max(np.abs(de[ext]))) > self.max_e_dist):
             self._chunks = [(P, lineno, raws)]  # the move-by-move planner raises the error, naming the line
             self._n_pend = n
             self._hand_over()
@@ -250,28 +252,3 @@ class KlipperChainPlanner(KlipperPlanner):
         self.need_prime = False
         if ends[-1] > self.print_time:
             self.print_time = float(ends[-1])
-
-    def _out_of_range(self, end: np.ndarray) -> bool:
-        """Whether any end point breaks the delta's ``check_move`` (KlipperDelta's rules, vectorised)."""
-        k = self.kin
-        x, y, z = end[:, 0], end[:, 1], end[:, 2]
-        xy2 = x * x + y * y
-        limit = np.full(len(z), k.max_xy2)
-        above = z - k.limit_z
-        hi = above > 0
-        if hi.any():
-            d2 = k.min_arm2 - (k.min_arm_length - above[hi]) ** 2
-            if (d2 < 0).any():
-                return True
-            limit[hi] = np.minimum(limit[hi], (k.radius - np.sqrt(d2)) ** 2)
-        bad = (xy2 > limit) | (z > k.max_z) | (z < k.min_z)
-        if not bad.any():
-            return False
-        hp = k.home_position
-        home = (x == hp[0]) & (y == hp[1]) & (z >= k.min_z) & (z <= hp[2])
-        return bool((bad & ~home).any())
-
-    def _long_retraction(self, d: np.ndarray, de: np.ndarray) -> bool:
-        ext = (de != 0) & ((de < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
-        return bool(ext.any() and float(np.max(np.abs(de[ext]))) > self.max_e_dist)
-
