@@ -156,9 +156,9 @@ def main() -> None:
               f"{d['print_time_s'] / d['wall_time_s']:.0f}x | {d['maxrss_mb']:.0f} MB | {d['steps']:,} | "
               f"{d['queue_lines']:,} | {d['max_step_error_steps']:.2f} steps |")
         return
-    print("| run | print time | wall time | print/wall | peak RSS | predicted RMS before -> after | self-check max "
-          "| drift max / at end |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| run | print time | wall time | print/wall | of which prediction / self-check | peak RSS "
+          "| predicted RMS before -> after | self-check max | drift max / at end |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for label, args in (("full (predict + self-check)", []),
                         ("no prediction, no self-check", ["--no-predict", "--no-self-check"])):
         d = run_file(path, args)
@@ -166,8 +166,11 @@ def main() -> None:
         sc = f"{d['self_check_max_um']:.1f} um" if d.get("self_check_max_um") is not None else "-"
         dr = (f"{d['self_check_drift_ms']:+.2f} / {d['self_check_drift_end_ms']:+.2f} ms"
               if d.get("self_check_drift_ms") is not None else "-")
+        checks = (f"{d['predict_time_s']:.1f} / {d['self_check_time_s']:.1f} s"
+                  if d.get("predict_time_s") is not None and d.get("self_check_time_s") is not None else "-")
         print(f"| {label} | {d['print_time_s'] / 3600:.2f} h | {d['wall_time_s']:.1f} s | "
-              f"{d['print_time_s'] / d['wall_time_s']:.0f}x | {d['maxrss_mb']:.0f} MB | {pred} | {sc} | {dr} |")
+              f"{d['print_time_s'] / d['wall_time_s']:.0f}x | {checks} | {d['maxrss_mb']:.0f} MB | {pred} | {sc} "
+              f"| {dr} |")
     print("\nInverse variants on 10,000 mm/s^2 squares (LPV model as judge):\n")
     print("\n".join(variants_table()))
 

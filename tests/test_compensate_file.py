@@ -133,3 +133,15 @@ def test_arcs_are_compensated_along_the_firmwares_chords(tmp_path, profile):
     assert chords[0.1] > 8 * chords[1.0]
     assert dev[1.0] > 0.035, dev  # the 1 mm chords' facets
     assert dev[0.1] < 0.008, dev  # 0.4 um facets, plus the point tolerance
+
+
+def test_the_summary_says_what_the_checks_cost(tmp_path, profile):
+    from ffcomp.pipeline.options import CompensateOptions
+
+    src = Path(__file__).resolve().parents[1] / "samples" / "gcode" / "stress_square.gcode"
+    s = compensate_file(str(src), str(tmp_path / "a.gcode"), profile)
+    assert 0 < s.predict_time_s and 0 < s.self_check_time_s
+    assert s.predict_time_s + s.self_check_time_s < s.wall_time_s
+    s = compensate_file(str(src), str(tmp_path / "b.gcode"), profile,
+                        CompensateOptions(predict=False, self_check=False))
+    assert s.predict_time_s is None and s.self_check_time_s is None

@@ -202,6 +202,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "print_time_s": ("print time, source (planned)", "{:.2f} s"),
         "output_print_time_s": ("print time, output (re-planned)", "{:.2f} s"),
         "wall_time_s": ("processing time", "{:.2f} s"),
+        "predict_time_s": ("  of which the prediction", "{:.2f} s"),
+        "self_check_time_s": ("  of which the self-check", "{:.2f} s"),
         "speed_ratio": ("speed (print time / processing time)", "{:.0f}x"),
         "self_check_max_um": ("self-check: max deviation of re-planned carriages", "{:.1f} um"),
         "self_check_rms_um": ("self-check: RMS deviation", "{:.2f} um"),

@@ -145,6 +145,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         if bd.pred_n:
             summ.rms_before_um, summ.max_before_um = bd.rms_um(1), bd.pred_mx[1] * 1e6
             summ.rms_after_um, summ.max_after_um = bd.rms_um(0), bd.pred_mx[0] * 1e6
+            summ.predict_time_s = bd.pred_time_s
         # header with the firmware settings this file needs, then the body
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = bd.stats.peak_accel_mm_s2
@@ -222,6 +223,7 @@ class BodyResult:
     pred_sq: list
     pred_n: int
     pred_mx: list
+    pred_time_s: float = 0.0
     k_written: int = 0
     streams: int = 0
     n_xyz: int = 0
@@ -401,6 +403,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                       pred_sq=[float(x) for x in pred.sq] if pred is not None else [0.0, 0.0],
                       pred_n=pred.n if pred is not None else 0,
                       pred_mx=[float(x) for x in pred.mx] if pred is not None else [0.0, 0.0],
+                      pred_time_s=pred.elapsed_s if pred is not None else 0.0,
                       k_written=k_written, streams=writer.stream + 1,
                       n_xyz=cuts.n_xyz if cuts is not None else 0,
                       cut_lo=cuts.lo if cuts is not None else None, cut_hi=cuts.hi if cuts is not None else None,

@@ -164,6 +164,10 @@ class CompensationSummary:
     #: rest margins added around retractions (``hold_margin_s``): how many, and the time they add, s
     hold_margins: int = 0
     hold_margin_time_s: float = 0.0
+    #: what the checks cost: the prediction's and the self-check's time, s (wall time in one
+    #: process; with ``--jobs``, summed over the workers)
+    predict_time_s: float | None = None
+    self_check_time_s: float | None = None
     #: short moves from rest to rest the firmware could not run in their time, written as holds
     #: (the nozzle stays within ``tol_um``; :func:`ffcomp.gcode.holds.unrunnable_rests`)
     micro_holds: int = 0

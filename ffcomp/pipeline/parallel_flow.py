@@ -366,5 +366,6 @@ def _merge(pieces, results, temps, summ, body_path, qfile, segfile, opts, jobs, 
                 gap = max(gap, g)
     checks = [bd.self_checks[0] for bd in written] if opts.self_check and not opts.self_check_whole else None
     return replace(last, stats=stats, pred_sq=sq, pred_n=sum(bd.pred_n for bd in bds), pred_mx=mx,
+                   pred_time_s=sum(bd.pred_time_s for bd in bds),
                    k_written=sum(bd.k_written for bd in bds), streams=sum(bd.streams for bd in bds), cut_lo=None,
                    cut_hi=None, self_checks=checks, k_offsets=k_offsets, seam_gap_mm=gap)

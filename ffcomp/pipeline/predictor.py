@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 
@@ -34,6 +35,7 @@ class Predictor:
                              for i in range(3)] for _ in range(2)]
         self.sq = np.zeros(2)
         self.n = 0
+        self.elapsed_s = 0.0  # time spent predicting, s
         self.mx = np.zeros(2)
         self.reset()
 
@@ -63,6 +65,7 @@ class Predictor:
         self._predict(q_cmd, q_ref, xyz_ref)
 
     def _predict(self, q_cmd, q_ref, xyz_ref):
+        t0 = time.perf_counter()
         if self.x is None:
             self.q0 = q_ref[0].copy()
         ws = []
@@ -90,6 +93,7 @@ class Predictor:
             self.sq[r] += float(np.sum(en * en))
             self.mx[r] = max(self.mx[r], float(en.max()))
         self.n += len(q_cmd)
+        self.elapsed_s += time.perf_counter() - t0
 
     def rms_um(self, r: int) -> float:
         return math.sqrt(self.sq[r] / max(self.n, 1)) * 1e6

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from operator import attrgetter
 
 import numpy as np
@@ -51,7 +52,7 @@ def merge(parts: list[dict], k_offsets: list[int], dt: float) -> dict:
             out["worst"], out["worst_k"] = r["worst"], r["worst_k"] + ko
         if abs(r["drift_max"]) > abs(out["drift_max"]):
             out["drift_max"], out["drift_at_k"] = r["drift_max"], r["drift_at_k"] + ko
-        for k in ("sq", "cnt", "t_end"):
+        for k in ("sq", "cnt", "t_end", "time_s"):
             out[k] += r[k]
         for k in ("worst_cu", "worst_abs"):
             out[k] = max(out[k], r[k])
@@ -69,6 +70,7 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
     (:class:`~ffcomp.gcode.klipper_chains.KlipperChainPlanner`: the same plan to about 1e-9 s, 2x
     faster); False: move by move.
     """
+    t_start = time.perf_counter()
     qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
     table = _SegmentTable(segfile, head_len)
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -195,7 +197,7 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
     qf.close()
     return {"worst": worst, "worst_k": worst_k, "sq": sq, "cnt": cnt, "worst_cu": worst_cu, "worst_abs": worst_abs,
             "drift_max": drift["max"], "drift_at_k": int(round(drift["at"] / dt)), "drift_at": drift["at"],
-            "drift_end": drift["end"], "t_end": t_end}
+            "drift_end": drift["end"], "t_end": t_end, "time_s": time.perf_counter() - t_start}
 
 
 def judge(r: dict, summ, opts, dt: float) -> None:
@@ -204,6 +206,7 @@ def judge(r: dict, summ, opts, dt: float) -> None:
     worst_cu, worst_abs, t_end = r["worst_cu"], r["worst_abs"], r["t_end"]
     drift = {"max": r["drift_max"], "at": r["drift_at"], "end": r["drift_end"]}
     summ.output_print_time_s = t_end
+    summ.self_check_time_s = r.get("time_s")
     summ.self_check_max_um = worst * 1e6
     summ.self_check_rms_um = math.sqrt(sq / max(cnt, 1)) * 1e6
     summ.self_check_catch_up_max_um = worst_cu * 1e6
