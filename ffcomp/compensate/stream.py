@@ -114,6 +114,7 @@ class FbsStream:
         self.band_dropped = 0  # QPs where the common-mode band could not be kept (solved without it)
         self.qp_windows = 0  # windows where the bounds were active (solved by OSQP)
         self.qp_redirected = 0  # of those, solved again along the solution's own direction
+        self.qp_exact = 0  # joint QPs solved exactly by the active-set method (the rest: OSQP)
         self._qp_cache: dict = {}
         self._rows_cache: dict = {}
         self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
@@ -467,7 +468,8 @@ class FbsStream:
         base_k = np.einsum("rkc,rc->rk", M, aref[ra] + e2[ra])  # the components without the new bases
         lo_c = (-Lb - base_k).T.reshape(-1)
         hi_c = (Lb - base_k).T.reshape(-1)
-        A = sp.vstack([A_box, A_cmp], format="csc") * sc
+        A_raw = sp.vstack([A_box, A_cmp], format="csr")
+        A = A_raw.tocsc() * sc
         rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
         A = sp.csr_matrix(sp.diags(1.0 / rn) @ A)
         P = sp.kron(I_C, sp.csc_matrix(G * sc * sc / gn), format="csc")
@@ -476,7 +478,14 @@ class FbsStream:
 
         nb = A_box.shape[0]
 
+        g_solve = partial(cho_solve, factor, check_finite=False)
+        c_free = g_solve(g).T.reshape(-1)  # the unconstrained minimiser, channel-major
+
         def solve(lo, hi, rows=slice(None)):
+            cv = _active_set_qp(c_free, A_raw[rows], lo[rows], hi[rows], g_solve, nJ, C)
+            if cv is not None:
+                self.qp_exact += 1
+                return cv / sc
             solver = osqp.OSQP()
             solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A[rows]), l=lo[rows] / rn[rows],
                          u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
@@ -860,3 +869,56 @@ class StreamingInverse:
         pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
         dn, self.dbuf = self.dbuf[:n], self.dbuf[n:]
         return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=True))
+
+
+def _active_set_qp(c0: np.ndarray, A, lo: np.ndarray, hi: np.ndarray, g_solve, nJ: int, C: int,
+                   max_iter: int = 60) -> np.ndarray | None:
+    """``argmin 1/2 c^T G c - g^T c`` subject to ``lo <= A c <= hi``, exactly, from the unconstrained
+    minimiser ``c0 = G^-1 g`` (channel-major, C blocks of nJ; ``G`` block-diagonal with one block
+    per channel, applied inverted by ``g_solve``).  Rows that ``c`` breaks join the working set at the
+    bound they break; while a row's multiplier has the wrong sign, the worst such row leaves it; the
+    equality-constrained minimiser ``c0 - G^-1 A_W^T lambda`` is solved again.  None when a working set
+    comes back (a cycle), the rounds run out, or the working set is degenerate: the caller falls back
+    to OSQP.
+    """
+    A = A.tocsr()
+    m = A.shape[0]
+    scale = np.where(np.isfinite(hi), np.abs(hi), 0.0) + np.where(np.isfinite(lo), np.abs(lo), 0.0)
+    tol = 1e-9 * np.maximum(scale, 1e-12)
+    side = np.zeros(m, np.int8)  # +1: held at hi, -1: held at lo
+    cols: dict = {}  # row -> G^-1 a_row (reused while the row stays in the working set)
+    seen: set = set()
+    c = c0
+    for _ in range(max_iter):
+        v = A @ c
+        new_hi, new_lo = (v > hi + tol) & (side == 0), (v < lo - tol) & (side == 0)
+        if not (new_hi.any() or new_lo.any()):
+            return c
+        side[new_hi], side[new_lo] = 1, -1
+        while True:  # the working set's minimiser; the worst wrong-signed row leaves, one at a time
+            w = np.nonzero(side)[0]
+            key = (w.tobytes(), side[w].tobytes())
+            if key in seen:
+                return None
+            seen.add(key)
+            if not w.size:
+                lam, Y = np.zeros(0), np.zeros((C * nJ, 0))
+                break
+            Aw = A[w].toarray()  # (k, C nJ)
+            for i, row in zip(w.tolist(), Aw):
+                if i not in cols:
+                    cols[i] = np.concatenate([g_solve(row[ch * nJ:(ch + 1) * nJ]) for ch in range(C)])
+            Y = np.stack([cols[i] for i in w.tolist()], axis=1)
+            b = np.where(side[w] > 0, hi[w], lo[w])
+            try:
+                lam = np.linalg.solve(Aw @ Y, Aw @ c0 - b)
+            except np.linalg.LinAlgError:
+                return None
+            score = side[w] * lam
+            if not (score < 0).any():
+                break
+            side[w[int(np.argmin(score / np.sqrt(np.maximum(np.einsum("ij,ji->i", Aw, Y), 1e-300))))]] = 0
+        c = c0 - Y @ lam
+        if not np.all(np.isfinite(c)):
+            return None
+    return None
