@@ -8,7 +8,8 @@ Run: ``python benchmarks/bench_ab.py REV [--lines 40000] [--rounds 2] [--file F]
 afterwards).  Each run is a fresh process on one thread compensating the first ``--lines`` lines of
 the file (default: the big plate, regenerated if missing) with the default options (prediction and
 self-check on); the runs alternate ``REV``, this tree, ``REV``, ...  Prints the wall and CPU time of
-every run, the print/wall ratios, and whether the two outputs are byte for byte equal.
+every run, the print/wall ratios, the prediction's and the self-check's time (where the code reports
+them: ``predict_time_s``, ``self_check_time_s``), and whether the two outputs are byte for byte equal.
 """
 
 from __future__ import annotations
@@ -37,7 +38,8 @@ prof = load_profile(sys.argv[3]) if sys.argv[3] else default_profile()
 t0, c0 = time.perf_counter(), time.process_time()
 s = compensate_file(sys.argv[1], sys.argv[2], prof)
 print(json.dumps({"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-                  "print_s": s.print_time_s}))
+                  "print_s": s.print_time_s, "predict_s": getattr(s, "predict_time_s", None),
+                  "check_s": getattr(s, "self_check_time_s", None)}))
 """
 
 
@@ -89,14 +91,16 @@ def main() -> None:
         finally:
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(wt)], check=False)
     print(f"\nfile: {a.file.name}, first {a.lines or 'all'} lines ({rows[0][2]['print_s']:.0f} s of printing)\n")
-    print("| code | wall time per run | CPU time per run | print/wall (mean) |")
-    print("|---|---|---|---|")
+    print("| code | wall time per run | CPU time per run | print/wall (mean) | of which prediction / self-check |")
+    print("|---|---|---|---|---|")
     for name in (a.rev, "this tree"):
         ds = [d for n, _, d in rows if n == name]
         walls = " / ".join(f"{d['wall_s']:.2f}" for d in ds)
         cpus = " / ".join(f"{d['cpu_s']:.2f}" for d in ds)
         ratio = sum(d["print_s"] / d["wall_s"] for d in ds) / len(ds)
-        print(f"| {name} | {walls} s | {cpus} s | {ratio:.0f}x |")
+        checks = " / ".join(f"{d['predict_s']:.2f} + {d['check_s']:.2f}" for d in ds
+                            if d.get("predict_s") is not None and d.get("check_s") is not None) or "-"
+        print(f"| {name} | {walls} s | {cpus} s | {ratio:.0f}x | {checks} s |")
     print(f"\noutputs byte for byte equal: {'yes' if same else 'no'}")
 
 

@@ -1,7 +1,5 @@
 """The chain planner (runs of straight moves planned vectorised) against the move-by-move planner."""
 
-import functools
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -156,7 +154,7 @@ def test_blocks_carry_the_klipper_fields(profile):
     # a plain run gives the same durations
     plain = list(GcodePlan(lines, profile, start_position_mm=(0.0, 0.0, 5.0, 0.0)))
     np.testing.assert_allclose(b.accel_t + b.cruise_t + b.decel_t, [m.duration_s for m in plain], rtol=1e-12)
-    assert functools.reduce(lambda a, m: a and m.kind == "move", plain, True)
+    assert all(m.kind == "move" for m in plain)
 
 
 @settings(max_examples=60, deadline=None)

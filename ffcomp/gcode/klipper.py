@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..errors import GcodeError, KinematicsError
 from .junction import JUNCTION_RULES, klipper_junction_deviation
 from .moves import DWELL, EXTRUDE, FIRMWARE, MOVE, PlannedMove
@@ -118,8 +120,6 @@ class KlipperDelta:
     def out_of_range(self, end) -> bool:
         """Whether any of the end points ``end`` ((n, 3) array, mm) is one :meth:`check_move` refuses
         (the same rules on arrays, for the chain planner)."""
-        import numpy as np
-
         x, y, z = end[:, 0], end[:, 1], end[:, 2]
         xy2 = x * x + y * y
         limit = np.full(len(z), self.max_xy2)

@@ -186,9 +186,10 @@ class KlipperChainPlanner(KlipperPlanner):
         self._lim.jd = self.junction_deviation
         self._lim.max_velocity = self.max_velocity
 
-    def _hand_over(self) -> None:
-        """Give the pending chain to the move-by-move planner; it plans the chain to its end."""
-        E, lineno, raws = self._take_pending()
+    def _hand_over(self, pending: tuple | None = None) -> None:
+        """Give the pending chain (or ``pending``, taken already) to the move-by-move planner; it plans
+        the chain to its end."""
+        E, lineno, raws = self._take_pending() if pending is None else pending
         self.commanded_pos = list(self._chain_start)
         self._general = True
         for r, ln, raw in zip(E.tolist(), lineno.tolist(), raws):
@@ -215,9 +216,7 @@ class KlipperChainPlanner(KlipperPlanner):
         ext = extruder_limited(d, de)
         if self.kin.out_of_range(b) or (self.max_e_dist is not None and ext.any()
                                         and float(np.max(np.abs(de[ext]))) > self.max_e_dist):
-            self._chunks = [(P, lineno, raws)]  # the move-by-move planner raises the error, naming the line
-            self._n_pend = n
-            self._hand_over()
+            self._hand_over((P, lineno, raws))  # the move-by-move planner raises the error, naming the line
             return
         lim = self._lim
         vmax, acc = segment_limits(lim, a, b, de)
