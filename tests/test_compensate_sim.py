@@ -122,8 +122,9 @@ def test_gcode_keeps_the_exact_commands_gain_on_both_profiles(tmp_path, profile,
 def test_zhop_travels_keep_part_of_the_gain_on_time(tmp_path, profile, which):
     """The fidelity bench's z-hop file (two squares printed in turn, PrusaSlicer's retract - lift -
     travel - lower - unretract between them), loose bounds on what the bench prints: the G-code
-    keeps about half of the exact commands' gain and the clock holds within a millisecond (README:
-    kept lag 0.55 / 0.68, drift +0.11 / -0.60 ms on the default / other profile)."""
+    keeps about half of the exact commands' gain and the clock holds within 0.3 ms (README: kept
+    lag 0.54 / 0.68, drift +0.07 / +0.16 ms on the default / other profile; -0.63 ms on the other
+    before the travel's lead-in was pinned and the move down's first point placed for the corner)."""
     import sys
     from pathlib import Path
 
@@ -141,4 +142,4 @@ def test_zhop_travels_keep_part_of_the_gain_on_time(tmp_path, profile, which):
     chk = check_gcode_output(prof, src, tmp_path / "zhop_out.gcode", plant_profile=plant)
     assert chk.exact.lag.rms_norm_um < 0.05 * chk.none.lag.rms_norm_um
     assert chk.kept("lag") >= 0.35 and chk.kept_extruding("lag") >= 0.5, (chk.kept("lag"), chk.kept_extruding("lag"))
-    assert abs(chk.summary.self_check_drift_ms) < 1.0, chk.summary.self_check_drift_ms
+    assert abs(chk.summary.self_check_drift_ms) < 0.3, chk.summary.self_check_drift_ms

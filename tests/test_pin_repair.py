@@ -250,3 +250,24 @@ def test_a_lifts_x_and_y_correction_runs_straight(profile):
         ramp[f] = float(np.max(np.abs(dxy[59] - dxy[20])))
     assert curv[100.0] < 0.05 * curv[1.0], curv
     assert ramp[100.0] > 1e-6, ramp  # (x and y still move during the lift)
+
+
+def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
+    """``lead_into``: the samples within ``span_s`` of the end of a travel (no extrusion) whose next
+    move the predicate picks; none of an extruding move's, none with ``span_s = 0``."""
+    from ffcomp.gcode.moves import PlannedMove
+    from ffcomp.pipeline.limited_moves import lead_into
+
+    def mv(i, t0, dur, e=0.0, z1=1.0):
+        return PlannedMove(i, i + 1, "move", t0, (0.0, 0.0, 1.0, 0.0), (1.0, 0.0, z1, e), 1.0, (1.0, 0.0, 0.0, 0.0),
+                           0.0, 10.0, 0.0, 1000.0, dur / 2, 0.0, dur / 2)
+
+    moves = {0: mv(0, 0.0, 0.010), 1: mv(1, 0.010, 0.010, z1=0.6), 2: mv(2, 0.020, 0.010, e=0.5),
+             3: mv(3, 0.030, 0.010, z1=0.6)}
+    t = np.arange(0, 40) * 1e-3
+    idx = (t // 0.010).astype(int)
+    pick = lambda m: m.end_mm[2] != m.start_mm[2]  # noqa: E731  (the z moves: 1 and 3)
+    hit = lead_into(idx, moves, t, 0.0025, pick)
+    # move 0 (a travel into z move 1): its samples at 8 and 9 ms; move 2 extrudes: none of it
+    assert np.nonzero(hit)[0].tolist() == [8, 9]
+    assert not lead_into(idx, moves, t, 0.0, pick).any()

@@ -5,7 +5,14 @@ import numpy as np
 import pytest
 
 from ffcomp.gcode.moves import PlannedMove
-from ffcomp.gcode.plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
+from ffcomp.gcode.plan_clock import (
+    CORNER_LEAD_GAP_MM,
+    REST_POINT_NEAR_MM,
+    corner_lead,
+    plan_speeds,
+    rest_end,
+    rest_start,
+)
 
 DT = 1e-3
 
@@ -106,3 +113,53 @@ def test_plan_speeds_are_the_trapezoids_peak_along_each_segment():
     want[peak] = mv.cruise_v_mm_s
     np.testing.assert_allclose(v, want, rtol=1e-9, atol=1e-3)
     assert np.all(acc == mv.accel_mm_s2)
+
+
+def _corner_down(v_j=2.739, a=3000.0, t0=0.0103, dz=0.4):
+    """A z move down from (0, 0, 1) that leaves the corner after an X travel at ``v_j`` (mm/s) and
+    accelerates at ``a`` (mm/s^2) to the end (enough for the test), and that travel."""
+    t = (np.sqrt(v_j * v_j + 2.0 * a * dz) - v_j) / a
+    down = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 - dz, 0.0), dz,
+                       (0.0, 0.0, -1.0, 0.0), v_j, v_j + a * t, v_j + a * t, a, t, 0.0, 0.0)
+    travel = PlannedMove(0, 1, "move", 0.0, (-10.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), 10.0,
+                         (1.0, 0.0, 0.0, 0.0), 0.0, 100.0, v_j, 3000.0, 0.01, 0.0, 0.0003)
+    return down, travel
+
+
+@pytest.mark.parametrize("t0", [0.0103, 0.0108, 0.0101])
+def test_a_run_leaves_a_corner_with_a_first_segment_the_junction_allows(t0):
+    """A run following the plan out of a right-angled corner it passes at v_j: Klipper caps the
+    junction at sqrt(d a tan(45 deg) / 2) for a first segment of length d, so the first point is
+    the plan's, 2 v_j^2 / a along the move, at the plan's time there; or, where a sample lies just
+    beyond that point, that sample (the ones before it go)."""
+    down, travel = _corner_down(t0=t0)
+    k = np.arange(0, 40)
+    a = int(np.ceil(t0 / DT))  # the move's first sample
+    X = np.zeros((len(k), 3))
+    X[:, 2] = 1.0 - np.array([down.distance_at(t) for t in k * DT])
+    on = np.ones(len(k), bool)
+    lead = np.array([0.0, 0.0, 1.0])
+    reach = 2.0 * down.start_v_mm_s**2 / down.accel_mm_s2
+    got = corner_lead(DT, 100, a, len(k), X, down, k, on, lead, travel)
+    d = 1.0 - X[a:, 2]
+    m = int(np.argmax(d >= reach))
+    assert m >= 1 and got is not None
+    n_drop, pt, k_pt = got
+    if d[m] < reach + CORNER_LEAD_GAP_MM:
+        assert n_drop == m and pt is None
+    else:
+        assert n_drop == m - 1
+        np.testing.assert_allclose(pt, [0.0, 0.0, 1.0 - reach], atol=1e-12)
+        t_pt = (k_pt - 100) * DT  # back on the plan's clock
+        assert down.distance_at(t_pt) == pytest.approx(reach, abs=1e-9)
+        assert 100 + a - 1 + m - 1 < k_pt < 100 + a + m
+    # no rule on a straight line, nor off the plan, nor away from the corner, nor from rest
+    straight = travel._replace(unit=(0.0, 0.0, -1.0, 0.0))
+    assert corner_lead(DT, 100, a, len(k), X, down, k, on, lead, straight) is None
+    assert corner_lead(DT, 100, a, len(k), X, down, k, ~on, lead, travel) is None
+    assert corner_lead(DT, 100, a, len(k), X, down, k, on, lead + 0.01, travel) is None
+    assert corner_lead(DT, 100, a, len(k), X, down._replace(start_v_mm_s=0.0), k, on, lead, travel) is None
+    # a sharper turn (135 degrees between the directions) reaches further: tan(22.5 deg) < 1
+    back = travel._replace(unit=(np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0))
+    far = corner_lead(DT, 100, a, len(k), X, down, k, on, lead, back)
+    assert far is not None and far[0] >= n_drop

@@ -591,3 +591,34 @@ def test_an_extruding_z_move_at_a_high_ratio_keeps_the_clock(tmp_path, profile):
     assert abs(drift_ms) < 1.0, drift_ms  # 11.07 ms before
     drift_ms, end_ms = _random_file_drift(tmp_path, text, load_profile(OTHER))
     assert abs(drift_ms) < 1.0, drift_ms  # 8.29 ms before
+
+
+def test_a_z_hop_travel_meets_its_pinned_move_down_on_the_clock(tmp_path, monkeypatch):
+    """The fidelity bench's z-hop file (retract, lift, travel, lower, unretract) on other_delta
+    (max_z_accel = 3000): the travel braked into the pinned move down while its compensated command
+    bent in z (Klipper caps such segments at ``max_z_accel * d/|dz|``), and the move down's first
+    segment was a sample's micrometre, which caps the corner's junction (the centripetal rule
+    scales with the segment's length): 0.63 ms off the clock.  The travel's last 2 ms are pinned
+    too (``RepairConfig.lead_in_s``) and the move down's first point lies where the junction
+    allows the plan's corner speed (``plan_clock.corner_lead``)."""
+    import sys
+
+    from ffcomp.compensate.pin_repair import RepairConfig
+    from ffcomp.gcode import plan_clock
+
+    sys.path[:0] = [str(ROOT / "benchmarks"), str(ROOT / "samples")]
+    try:
+        import bench_gcode_fidelity as fidelity
+    finally:
+        del sys.path[:2]
+    src = tmp_path / "zhop.gcode"
+    src.write_text(fidelity._file(["SET_VELOCITY_LIMIT ACCEL=10000", "M204 S10000"], fidelity.zhop_squares(layers=2)))
+
+    def drift_ms(**repair) -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
+                            CompensateOptions(predict=False, repair=RepairConfig(**repair), self_check_drift_ms=1e9))
+        return s.self_check_drift_ms
+
+    assert abs(drift_ms()) < 0.25  # +0.16 ms
+    monkeypatch.setattr(plan_clock, "CORNER_LEAD_MAX_MM", 0.0)
+    assert abs(drift_ms(lead_in_s=0.0)) > 0.5  # the case: -0.63 ms

@@ -71,6 +71,12 @@ class RepairConfig:
         row ran 2.8 ms late on other_delta (now -0.62 ms, clock error 16 um)
     edge_weight, edge_samples : the acceleration penalty is this much heavier within about this many
         samples of a pin (the firmware starts there from the plan's state)
+    lead_in_s : the last this-many seconds of a move that runs into a pinned move which
+        ``max_z_accel`` binds (a z-hop's travel into the move down) are pinned too: the travel
+        arrives at the corner on the plan, not bending in z while it brakes (Klipper caps a
+        segment's acceleration at ``max_z_accel * d/|dz|``; on the fidelity bench's z-hop row,
+        other_delta, the re-planned output ran 0.63 ms early there, 13 um off the command, and with
+        2 ms 0.25 ms and 4 um; 1 ms left 0.32 ms, 3-5 ms no better than 2)
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
         acceleration scales above are divided by this (the firmware caps those segments and their
         junctions at ``max_z_accel * d/|dz|``)
@@ -92,6 +98,7 @@ class RepairConfig:
     steep_accel_factor: float = 5.0
     z_only_hops: bool = False
     lift_xy_accel_factor: float = 100.0
+    lead_in_s: float = 0.002
 
 
 class PulseResponses:

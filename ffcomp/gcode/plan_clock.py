@@ -16,7 +16,7 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "plan_speeds", "REST_POINT_NEAR_MM"]
+__all__ = ["rest_end", "rest_start", "corner_lead", "plan_speeds", "REST_POINT_NEAR_MM", "CORNER_LEAD_MAX_MM"]
 
 #: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
 #: than a segment of that length being appended: a micrometre's segment into a corner caps the
@@ -72,6 +72,68 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
         if next_move is None or next_move.kind == MOVE:
             return None
     return end, k_end, float(mv.end_mm[3]), int(far)
+
+
+#: the farthest :func:`corner_lead` moves a run's first point from its corner, mm
+CORNER_LEAD_MAX_MM = 0.02
+#: the least distance between the moved first point and the run's second sample, mm (closer, the
+#: two would print as one point: a hold, where the firmware stops)
+CORNER_LEAD_GAP_MM = 2e-3
+
+
+def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
+                k_plan: np.ndarray | None, on_plan: np.ndarray | None, lead_pt: np.ndarray | None,
+                prev: PlannedMove | None):
+    """How a motion run (samples ``k0 + a .. k0 + b - 1``) that leaves a corner of the plan at
+    speed begins: ``(n, point mm, time / dt on the writer's count)``, its first ``n`` samples
+    dropped and, unless ``point`` is None, the next one moved to ``point`` at that time; or None
+    to keep its samples.
+
+    Klipper caps the speed at a junction by the centripetal rule of the segment after it,
+    ``v^2 <= d tan(theta/2) a / 2`` (``d`` its length, ``a`` its acceleration, ``theta`` the
+    inner angle between the segments; none on a straight line).  A run that
+    follows the plan out of a corner the plan passes at ``v_j`` (a z-hop's move down after its
+    travel, at ``max_z_accel``) starts with a sample's chord of a micrometre or two: the firmware
+    would slow to ``sqrt(d a tan(theta/2) / 2)`` at the corner and run a fraction of a
+    millisecond late down the whole move.  Its first point is the plan's point
+    ``2 v_j^2 / (a tan(theta/2))`` along the move (at most :data:`CORNER_LEAD_MAX_MM`; ``theta``
+    between ``prev``, the plan's move before, and ``mv``) at the plan's time there; the samples
+    before it go.  Where a sample lies just beyond that point (within
+    :data:`CORNER_LEAD_GAP_MM`: the two would print as one point, a hold where the firmware
+    stops), that sample is the first point instead.  Only where the run's samples up to there
+    are on the plan (pinned) and the run starts on the move's start.
+    """
+    if (mv is None or prev is None or prev.kind != MOVE or k_plan is None or on_plan is None
+            or lead_pt is None or b - a < 4 or k_plan[a] < 0 or mv.start_v_mm_s <= 1e-9
+            or mv.accel_mm_s2 <= 0.0):
+        return None
+    jc = -float(np.dot(prev.unit[:3], mv.unit[:3]))  # Klipper's junction_cos_theta
+    if jc < -0.999:  # (nearly) straight on: no centripetal rule
+        return None
+    tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
+    start = np.array(mv.start_mm[:3], float)
+    if np.linalg.norm(np.round(start, 4) - lead_pt) >= 1e-3:
+        return None
+    v, acc = mv.start_v_mm_s, mv.accel_mm_s2
+    reach = min(2.0 * v * v / (acc * tan_half), CORNER_LEAD_MAX_MM)
+    if reach < 1e-3:
+        return None
+    d = np.linalg.norm(X[a:b] - start, axis=1)
+    beyond = np.nonzero(d >= reach)[0]
+    if not beyond.size:
+        return None
+    m = int(beyond[0])  # the first sample at or beyond the point
+    if m == 0 or m > b - a - 3 or not on_plan[a:a + m + 1].all():
+        return None
+    if d[m] < reach + CORNER_LEAD_GAP_MM:
+        return m, None, None
+    tau = (np.sqrt(v * v + 2.0 * acc * reach) - v) / acc
+    if tau > mv.accel_t_s:
+        return None
+    k = (mv.t_start_s + tau) / dt + (k0 + a - int(k_plan[a]))
+    if not (k0 + a - 1 < k < k0 + a + m - 1e-6):
+        return None
+    return m - 1, start + np.array(mv.unit[:3], float) * reach, k
 
 
 def rest_start(dt: float, k0: int, a: int, mv: PlannedMove | None, k_plan: np.ndarray | None,

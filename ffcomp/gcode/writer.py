@@ -48,7 +48,7 @@ from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
-from .plan_clock import REST_POINT_NEAR_MM, plan_speeds, rest_end, rest_start
+from .plan_clock import REST_POINT_NEAR_MM, corner_lead, plan_speeds, rest_end, rest_start
 from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
@@ -326,6 +326,7 @@ class GcodeWriter:
         R = len(runs)
         ch = _Chunk(R)
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
+        leads = []  # per motion run: its first point moved out of the plan's corner (plan_clock.corner_lead)
         run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
         went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
         rest_go = []  # per motion run: it leaves at once from the plan's rest point the run before ended on
@@ -351,6 +352,9 @@ class GcodeWriter:
                 went.append(k_go != last_k)
                 rest_go.append(k_go == last_k and at_rest_end and (mv is None or mv.start_v_mm_s <= 1e-9))
                 run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
+                leads.append(corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, last_pt,
+                                         self.moves.get(mv.index - 1))
+                             if self.chain is not None and mv is not None else None)
                 run_ids.append(r)
                 a_s.append(a)
                 n_s.append(b - a + 1)
@@ -408,6 +412,13 @@ class GcodeWriter:
             P[at] = np.array([e[0] for _, e in ends])
             K[at] = [e[1] for _, e in ends]
             Ef[at] = [e[2] for _, e in ends]
+        dropped = []  # points a run's corner lead drops (plan_clock.corner_lead)
+        for m_, lead in enumerate(leads):
+            if lead is not None:
+                n_drop, pt, k_pt = lead
+                dropped.extend(range(offs[m_] + 1, offs[m_] + 1 + n_drop))
+                if pt is not None:
+                    P[offs[m_] + 1 + n_drop], K[offs[m_] + 1 + n_drop] = pt, k_pt
         # ---- point placement, all runs at once
         keep = np.zeros(total, bool)
         keep[offs] = keep[last] = True
@@ -426,6 +437,8 @@ class GcodeWriter:
             o = offs[w_]
             near = np.linalg.norm(np.round(P[o + 1], 4) - np.round(P[o], 4), axis=1) < 1e-3
             keep[o[near] + 1] = False
+        if dropped:
+            keep[dropped] = False
         kidx = np.nonzero(keep)[0]
         if self.fit_points:  # the chosen points' values: the best time-linear fit of the samples
             # (not on moves with z travel, where max_z_accel * d/|dz| binds the firmware: there the

@@ -36,7 +36,7 @@ from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, s
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings, shaper_summary
-from .limited_moves import LimitBound, ZLimited, after_firmware, moves_where, z_held, z_hop, z_moving
+from .limited_moves import LimitBound, ZLimited, after_firmware, lead_into, moves_where, z_held, z_hop, z_moving
 from .options import (  # noqa: F401  (re-exported: the run's options and summary live in options.py)
     JUMP_M,
     PIECE_START_FEED_MM_MIN,
@@ -378,9 +378,14 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                     opts.repair.pin_z_before_hold and z_hop(mv) and bound.z_before_hold(mv, moves)
                     and zlim is not None and zlim.limited(mv)))
 
+            def pinned_z(mv) -> bool:  # a pinned move that max_z_accel binds (a z-hop's move down)
+                return mv.kind == "move" and zlim is not None and zlim.limited(mv) and pinned(mv)
+
             def pins(meta):
+                t_s = meta["k"] * dt
                 return (moves_where(meta["move_index"], moves, pinned)
-                        | after_firmware(meta["move_index"], moves, meta["k"] * dt, dt))
+                        | after_firmware(meta["move_index"], moves, t_s, dt)
+                        | lead_into(meta["move_index"], moves, t_s, opts.repair.lead_in_s, pinned_z))
 
             zpins = (lambda meta: moves_where(meta["move_index"], moves, hop_pinned)) if opts.repair.z_only_hops \
                 else None

@@ -15,7 +15,8 @@ from ..gcode.chain_plan import ChainLimits, segment_limits
 from ..gcode.extrusion import extruder_capped as _extruder_capped
 from ..gcode.moves import FIRMWARE
 
-__all__ = ["LimitBound", "ZLimited", "moves_where", "holds", "after_firmware", "z_held", "z_moving", "z_hop"]
+__all__ = ["LimitBound", "ZLimited", "moves_where", "holds", "after_firmware", "lead_into", "z_held", "z_moving",
+           "z_hop"]
 
 
 def moves_where(move_index: np.ndarray, moves: dict, pred) -> np.ndarray:
@@ -53,6 +54,20 @@ def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: flo
         start = np.array([moves[int(i)].t_start_s for i in move_index[hit].tolist()])
         hit[hit] = np.asarray(t_s)[hit] - start < dt * (1.0 - 1e-9)
     return hit
+
+
+def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred) -> np.ndarray:
+    """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion) whose
+    next move satisfies ``pred``; ``t_s``: the samples' times, s."""
+    if span_s <= 0.0 or not len(move_index):
+        return np.zeros(len(move_index), bool)
+    uniq, inv = np.unique(move_index, return_inverse=True)
+    from_s = np.full(len(uniq), np.inf)  # per move: the time from which its samples lead in
+    for q, i in enumerate(uniq.tolist()):
+        mv, nx = moves.get(int(i)), moves.get(int(i) + 1)
+        if mv is not None and nx is not None and mv.kind == "move" and mv.end_mm[3] == mv.start_mm[3] and pred(nx):
+            from_s[q] = mv.t_end_s - span_s
+    return np.asarray(t_s) > from_s[inv.reshape(-1)]
 
 
 def z_held(move_index: np.ndarray, moves: dict) -> np.ndarray:
