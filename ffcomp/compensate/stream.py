@@ -33,8 +33,12 @@ from .kernels import (
     mech_kernels,
     mech_tail_samples,
 )
+from .modal_fbs import ModalFbs, modal_split
 
 __all__ = ["FbsStream", "StreamingInverse"]
+
+#: solve the mechanics stage per mode where its kernel splits (:mod:`.modal_fbs`); False: coupled
+MODAL_MECH = True
 
 #: ``FbsStream._surely_within``'s default: the window's common-mode band is computed there
 _OWN = object()
@@ -71,10 +75,16 @@ class FbsStream:
         Relative Tikhonov weight towards the target at each basis' centre.
     row_stride : int
         Residual evaluated on every ``row_stride``-th sample.
+    channels : int
+        Independent signals through the same (single-input single-output) kernel, solved together.
+    lam_fn : callable, optional
+        ``lam_fn(rows)``: the Tikhonov weight of a window of ``rows`` samples (default: ``reg``
+        times the mean diagonal of the window's Gram matrix; :class:`.modal_fbs.ModalFbs` passes
+        the coupled problem's).
     """
 
     def __init__(self, kernel: np.ndarray, basis: UniformBasis, window: int, advance: int, reg: float,
-                 row_stride: int = 1, channels: int = 1):
+                 row_stride: int = 1, channels: int = 1, lam_fn=None):
         self.K = np.asarray(kernel, float)
         self.n_in, self.L, self.n_out = self.K.shape
         if channels > 1 and (self.n_in != 1 or self.n_out != 1):
@@ -90,7 +100,8 @@ class FbsStream:
         Kb = np.broadcast_to(self.K[None], (self.nJ,) + self.K.shape)
         self.Phi = _dense_basis(Kb, starts, window, row_stride)
         G = self.Phi.T @ self.Phi
-        self.lam = reg * max(float(np.mean(np.diag(G))), 1e-30)
+        self.lam_fn = lam_fn
+        self.lam = lam_fn(window) if lam_fn is not None else reg * max(float(np.mean(np.diag(G))), 1e-30)
         G[np.diag_indices_from(G)] += self.lam
         self.factor = cho_factor(G, lower=True, check_finite=False)
         self._tail_cache: dict[int, tuple] = {}
@@ -139,7 +150,8 @@ class FbsStream:
                 Kb = np.broadcast_to(self.K[None], (nJ,) + self.K.shape)
                 Ph = _dense_basis(Kb, np.arange(nJ) * m, rows, self.rs)
                 G = Ph.T @ Ph
-                lam_t = self.reg * max(float(np.mean(np.diag(G))), 1e-30)
+                lam_t = (self.lam_fn(rows) if self.lam_fn is not None
+                         else self.reg * max(float(np.mean(np.diag(G))), 1e-30))
                 G[np.diag_indices_from(G)] += lam_t
                 self._tail_cache[rows] = (Ph, cho_factor(G, lower=True, check_finite=False), lam_t)
             Phi, factor, lam = self._tail_cache[rows]
@@ -705,7 +717,9 @@ class StreamingInverse:
         k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
         win = _round_to(int(round(cfg.window_s / dt)), m)
         adv = _round_to(int(round(cfg.advance_s / dt)), m)
-        self.mech = FbsStream(k0, self.basis, win, adv, cfg.reg, cfg.row_stride)
+        split = modal_split(k0) if MODAL_MECH else None  # towers alike: one solve per mode (modal_fbs)
+        self.mech = (ModalFbs(*split, self.basis, win, adv, cfg.reg, cfg.row_stride) if split is not None
+                     else FbsStream(k0, self.basis, win, adv, cfg.reg, cfg.row_stride))
         dwin = _round_to(int(round(cfg.drive_window_s / dt)), m)
         dadv = _round_to(int(round(cfg.drive_advance_s / dt)), m)
         self.drive, self.dfilt = [], []
