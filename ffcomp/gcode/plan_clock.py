@@ -76,6 +76,8 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
 
 #: the farthest :func:`corner_lead` moves a run's first point from its corner, mm
 CORNER_LEAD_MAX_MM = 0.02
+#: the most samples :func:`corner_lead` looks at past a corner
+CORNER_LEAD_MAX_SAMPLES = 16
 #: the least distance between the moved first point and the run's second sample, mm (closer, the
 #: two would print as one point: a hold, where the firmware stops)
 CORNER_LEAD_GAP_MM = 2e-3
@@ -103,8 +105,8 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     stops), that sample is the first point instead.  Only where the run's samples up to there
     are on the plan (pinned) and the run starts on the move's start.
     """
-    if (mv is None or prev is None or prev.kind != MOVE or k_plan is None or on_plan is None
-            or lead_pt is None or b - a < 4 or k_plan[a] < 0 or mv.start_v_mm_s <= 1e-9
+    if (on_plan is None or b - a < 4 or not on_plan[a] or mv is None or prev is None or prev.kind != MOVE
+            or k_plan is None or lead_pt is None or k_plan[a] < 0 or mv.start_v_mm_s <= 1e-9
             or mv.accel_mm_s2 <= 0.0):
         return None
     jc = -float(np.dot(prev.unit[:3], mv.unit[:3]))  # Klipper's junction_cos_theta
@@ -118,7 +120,9 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     reach = min(2.0 * v * v / (acc * tan_half), CORNER_LEAD_MAX_MM)
     if reach < 1e-3:
         return None
-    d = np.linalg.norm(X[a:b] - start, axis=1)
+    if np.linalg.norm(X[a] - start) >= reach:
+        return None
+    d = np.linalg.norm(X[a:min(b, a + CORNER_LEAD_MAX_SAMPLES)] - start, axis=1)
     beyond = np.nonzero(d >= reach)[0]
     if not beyond.size:
         return None
