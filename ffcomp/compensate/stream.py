@@ -365,7 +365,7 @@ class FbsStream:
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
         if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
-            return self._bounded_joint(c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+            return self._bounded_joint(c, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
                                        factor, lam, pins.size > 0)
         b0, b1, b2 = np.split(Bs @ c, 3)
         val, vel, acc = b0 + e0, b1 + e1 + vref, b2 + e2 + aref
@@ -431,7 +431,7 @@ class FbsStream:
             out[:, ch] = res.x * sc
         return out
 
-    def _bounded_joint(self, c, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
+    def _bounded_joint(self, c, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
                        pinned, _dirs=None):
         """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
         covers, the components of ``set_common_accel_bound(components=...)``
@@ -446,8 +446,8 @@ class FbsStream:
         D = self.bounds[0]
         C = self.C
         ra = np.nonzero(np.isfinite(band[0][r]))[0]  # constraint rows the band covers
-        acc = B2 @ c + e2 + aref
-        val, vel = B0 @ c + e0, B1 @ c + e1 + vref
+        b0, b1, b2 = np.split(Bs @ c, 3)  # (Bs: B0, B1, B2 stacked, sparse)
+        val, vel, acc = b0 + e0, b1 + e1 + vref, b2 + e2 + aref
         # the components along and across the command's own direction (the unbounded solution's):
         # the firmware caps each written segment by its direction, and where the command
         # pre-actuates a z move it turns steep while the reference still runs flat (a layer change
@@ -530,12 +530,13 @@ class FbsStream:
                               f"t = {self.w0 * self.basis.dt_s:.3f} s")
         out = (x * sc).reshape(C, nJ).T
         if _dirs is None:
-            acc2, vel2 = B2 @ out + e2 + aref, B1 @ out + e1 + vref
+            _, b1, b2 = np.split(Bs @ out, 3)
+            acc2, vel2 = b2 + e2 + aref, b1 + e1 + vref
             M2, L2 = self.comp_fn(self.cpos[a + r[ra]], vel2[ra], acc2[ra])
             Lb2 = np.maximum(L2, np.abs(np.einsum("rkc,rc->rk", M2, aref[ra])) * 1.0001)
             if np.any(np.abs(np.einsum("rkc,rc->rk", M2, acc2[ra])) > Lb2 * 1.02):
                 self.qp_redirected += 1
-                return self._bounded_joint(out, a, r, B0, B1, B2, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                return self._bounded_joint(out, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
                                            factor, lam, pinned, _dirs=(vel2, acc2))
         return out
 
