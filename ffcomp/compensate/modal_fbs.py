@@ -88,7 +88,6 @@ class ModalFbs:
 
     @staticmethod
     def _back(vc: np.ndarray, vd: np.ndarray) -> np.ndarray:
-        n = min(len(vc), len(vd))
-        if len(vc) != len(vd):
-            raise RuntimeError("the modal streams went out of step")  # (same windows: never)
-        return np.hstack([vc[:n].reshape(n, 1), vd[:n].reshape(n, 2)]) @ MODES
+        if len(vc) != len(vd):  # (the same windows: never)
+            raise RuntimeError("the modal streams went out of step")
+        return np.hstack([vc.reshape(-1, 1), vd.reshape(-1, 2)]) @ MODES

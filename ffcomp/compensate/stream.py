@@ -37,9 +37,6 @@ from .modal_fbs import ModalFbs, modal_split
 
 __all__ = ["FbsStream", "StreamingInverse"]
 
-#: solve the mechanics stage per mode where its kernel splits (:mod:`.modal_fbs`); False: coupled
-MODAL_MECH = True
-
 #: ``FbsStream._surely_within``'s default: the window's common-mode band is computed there
 _OWN = object()
 
@@ -722,7 +719,7 @@ class StreamingInverse:
         k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
         win = _round_to(int(round(cfg.window_s / dt)), m)
         adv = _round_to(int(round(cfg.advance_s / dt)), m)
-        split = modal_split(k0) if MODAL_MECH else None  # towers alike: one solve per mode (modal_fbs)
+        split = modal_split(k0)  # towers alike: one solve per mode (modal_fbs), else coupled
         self.mech = (ModalFbs(*split, self.basis, win, adv, cfg.reg, cfg.row_stride) if split is not None
                      else FbsStream(k0, self.basis, win, adv, cfg.reg, cfg.row_stride))
         dwin = _round_to(int(round(cfg.drive_window_s / dt)), m)
