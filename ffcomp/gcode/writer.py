@@ -556,7 +556,7 @@ class GcodeWriter:
                 self.stats.peak_z_velocity_mm_s = max(self.stats.peak_z_velocity_mm_s, float(np.max(sp * uz)))
             self.prev_v = vv[-1]
         # ---- the lines (one per segment) and the self-check's table
-        xs, ys, zs = Pr[j].T.tolist()
+        xs, ys, zs = (Pr[j] + 0.0).T.tolist()  # (+ 0.0: a coordinate rounded to -0.0 prints as 0.0000)
         pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms
         lines = []
         app = lines.append
