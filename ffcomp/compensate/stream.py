@@ -124,6 +124,7 @@ class FbsStream:
         self.qp_redirected = 0  # of those, solved again along the solution's own direction
         self.qp_exact = 0  # joint QPs solved exactly by the active-set method (the rest: OSQP)
         self._qp_cache: dict = {}
+        self._abox_cache: dict = {}  # the joint QP's box rows per window shape (sparse)
         self._rows_cache: dict = {}
         self.pred = np.zeros((window + self.L + 1, self.n_out * self.C))
         self.w0 = 0
@@ -459,21 +460,16 @@ class FbsStream:
             return c
         self.qp_windows += 1
         sc = 1e-4
-        if nJ * self.n_in == self.Phi.shape[1] and not pinned:
-            G = getattr(self, "_gram", None)
-            if G is None:  # the same in every full window
-                G = self._gram = self.Phi.T @ self.Phi
-                G[np.diag_indices_from(G)] += lam
-        else:  # rare: the tail window or pinned rows
-            G = np.linalg.inv(_chol_to_inv(factor))
-        gn = float(np.mean(np.diag(G))) * sc * sc
         g = rhs().reshape(nJ, -1)
-        I_C = sp.identity(C, format="csc")
-        # per channel: value, velocity, acceleration rows; then the components, coupling the channels
-        A_box = sp.kron(I_C, sp.csc_matrix(np.vstack([B0, B1, B2])))
-        B2a = B2[ra]
-        A_cmp = sp.csc_matrix(np.hstack([(M[:, :, ch].T.reshape(-1)[:, None]
-                                          * np.tile(B2a, (3, 1))) for ch in range(C)]))
+        # per channel: value, velocity, acceleration rows (the same in every window of this shape);
+        # then the components, coupling the channels: row (k, r) of channel ch is M[r, k, ch] B2[r]
+        akey = (nJ, len(r), C)
+        A_box = self._abox_cache.get(akey)
+        if A_box is None:
+            A_box = self._abox_cache[akey] = sp.kron(sp.identity(C, format="csr"), Bs, format="csr")
+        B2a = sp.csr_matrix(B2[ra])
+        A_cmp = sp.hstack([sp.vstack([sp.diags(M[:, k, ch]) @ B2a for k in range(M.shape[1])])
+                           for ch in range(C)])
         lo_box = np.concatenate([np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch],
                                                  -Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
         hi_box = np.concatenate([np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch],
@@ -482,23 +478,37 @@ class FbsStream:
         lo_c = (-Lb - base_k).T.reshape(-1)
         hi_c = (Lb - base_k).T.reshape(-1)
         A_raw = sp.vstack([A_box, A_cmp], format="csr")
-        A = A_raw.tocsc() * sc
-        rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
-        A = sp.csr_matrix(sp.diags(1.0 / rn) @ A)
-        P = sp.kron(I_C, sp.csc_matrix(G * sc * sc / gn), format="csc")
-        q = -(g.T.reshape(-1)) * sc / gn
-        x0 = c.T.reshape(-1) / sc
-
         nb = A_box.shape[0]
 
         g_solve = partial(cho_solve, factor, check_finite=False)
         c_free = g_solve(g).T.reshape(-1)  # the unconstrained minimiser, channel-major
+        osqp_parts: list = []
+
+        def osqp_problem():
+            """OSQP's scaled problem (coefficients in units of ``sc``, the objective normalised, every
+            constraint row to unit size), built only when the exact solve gives up."""
+            if not osqp_parts:
+                if nJ * self.n_in == self.Phi.shape[1] and not pinned:
+                    G = getattr(self, "_gram", None)
+                    if G is None:  # the same in every full window
+                        G = self._gram = self.Phi.T @ self.Phi
+                        G[np.diag_indices_from(G)] += lam
+                else:  # rare: the tail window or pinned rows
+                    G = np.linalg.inv(_chol_to_inv(factor))
+                gn = float(np.mean(np.diag(G))) * sc * sc
+                A = A_raw.tocsc() * sc
+                rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
+                A = sp.csr_matrix(sp.diags(1.0 / rn) @ A)
+                P = sp.kron(sp.identity(C, format="csc"), sp.csc_matrix(G * sc * sc / gn), format="csc")
+                osqp_parts.extend([A, rn, P, -(g.T.reshape(-1)) * sc / gn, c.T.reshape(-1) / sc])
+            return osqp_parts
 
         def solve(lo, hi, rows=slice(None)):
             cv = _active_set_qp(c_free, A_raw[rows], lo[rows], hi[rows], g_solve, nJ, C)
             if cv is not None:
                 self.qp_exact += 1
                 return cv / sc
+            A, rn, P, q, x0 = osqp_problem()
             solver = osqp.OSQP()
             solver.setup(P=sp.triu(P, format="csc"), q=q, A=sp.csc_matrix(A[rows]), l=lo[rows] / rn[rows],
                          u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
@@ -513,7 +523,7 @@ class FbsStream:
         if not box_bad:  # the channels' own bounds are rarely near: first without them (a smaller problem)
             x = solve(lo_all, hi_all, slice(nb, None))
             if x is not None:
-                ab = (A[:nb] @ x) * rn[:nb]
+                ab = A_raw[:nb] @ (x * sc)
                 if np.any(ab < lo_box - 1e-9 * np.abs(lo_box)) or np.any(ab > hi_box + 1e-9 * np.abs(hi_box)):
                     x = None
         if x is None:
