@@ -467,9 +467,14 @@ class FbsStream:
         A_box = self._abox_cache.get(akey)
         if A_box is None:
             A_box = self._abox_cache[akey] = sp.kron(sp.identity(C, format="csr"), Bs, format="csr")
-        B2a = sp.csr_matrix(B2[ra])
-        A_cmp = sp.hstack([sp.vstack([sp.diags(M[:, k, ch]) @ B2a for k in range(M.shape[1])])
-                           for ch in range(C)])
+        rr, jj = np.nonzero(B2[ra])  # (B2's pattern on the band's rows, row-major)
+        bv = B2[ra][rr, jj]
+        K_, R_ = M.shape[1], len(ra)
+        kk, cc = np.meshgrid(np.arange(K_), np.arange(C), indexing="ij")  # (K, C) blocks
+        A_cmp = sp.csr_matrix(((M[rr][:, kk, cc] * bv[:, None, None]).transpose(1, 2, 0).reshape(-1),
+                               (((kk * R_)[:, :, None] + rr[None, None, :]).reshape(-1),
+                                ((cc * nJ)[:, :, None] + jj[None, None, :]).reshape(-1))),
+                              shape=(K_ * R_, C * nJ))
         lo_box = np.concatenate([np.concatenate([-D - e0[:, ch], -Vb[:, ch] - vref[:, ch] - e1[:, ch],
                                                  -Ab[:, ch] - aref[:, ch] - e2[:, ch]]) for ch in range(C)])
         hi_box = np.concatenate([np.concatenate([D - e0[:, ch], Vb[:, ch] - vref[:, ch] - e1[:, ch],
