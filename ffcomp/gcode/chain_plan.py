@@ -151,25 +151,28 @@ def plan_chain(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
 def trapezoids(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2: np.ndarray,
                start_v2: float, end_v2: float) -> tuple[np.ndarray, ...]:
     """:func:`plan_chain`'s trapezoids in full: the acceleration, cruise and deceleration times (s)
-    and the entry, cruise and exit speeds (mm/s) of every segment (the same arguments)."""
+    and the entry, cruise and exit speeds (mm/s) of every segment (the same arguments).
+
+    ``cruise_v2`` may carry leading batch axes, ``(..., n)``: several chains of the same segments
+    with other feed rates planned at once (each row bit for bit as on its own)."""
     n = len(dist)
     delta = 2.0 * dist * acc
     # junction: both cruise speeds and the rules
-    J = np.empty(n)
-    J[0] = min(junc_v2[0], cruise_v2[0], start_v2)
-    np.minimum(np.minimum(junc_v2[1:], cruise_v2[1:]), cruise_v2[:-1], out=J[1:])
+    J = np.empty(cruise_v2.shape)
+    J[..., 0] = np.minimum(min(junc_v2[0], start_v2), cruise_v2[..., 0])
+    np.minimum(np.minimum(junc_v2[1:], cruise_v2[..., 1:]), cruise_v2[..., :-1], out=J[..., 1:])
     # forward: ms_i = min(J_i, ms_{i-1} + delta_{i-1}) = S_i + cummin(J_k - S_k)
     S = np.empty(n + 1)
     S[0] = 0.0
     np.cumsum(delta, out=S[1:])
     S0 = S[:-1]
-    ms = S0 + np.minimum.accumulate(J - S0)
+    ms = S0 + np.minimum.accumulate(J - S0, axis=-1)
     # backward: s_i = min(ms_i, s_{i+1} + delta_i), s_n = end_v2
-    tail = np.empty(n + 1)
-    np.add(ms, S0, out=tail[:-1])
-    tail[-1] = end_v2 + S[-1]
-    sv = np.minimum.accumulate(tail[::-1])[::-1] - S
-    s_in, s_out = sv[:-1], sv[1:]
+    tail = np.empty(cruise_v2.shape[:-1] + (n + 1,))
+    np.add(ms, S0, out=tail[..., :-1])
+    tail[..., -1] = end_v2 + S[-1]
+    sv = np.minimum.accumulate(tail[..., ::-1], axis=-1)[..., ::-1] - S
+    s_in, s_out = sv[..., :-1], sv[..., 1:]
     cruise = np.minimum((s_in + s_out + delta) * 0.5, cruise_v2)
     np.maximum(cruise, s_in, out=cruise)
     e_out = np.minimum(s_out, cruise)
@@ -179,7 +182,8 @@ def trapezoids(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
     decel_d = (cruise - e_out) * half_inv
     cruise_d = np.maximum(dist - accel_d - decel_d, 0.0)
     # (divisions only where they are defined: no floating-point state to save and restore)
-    t1 = np.divide(accel_d, (vi + vc) * 0.5, out=np.zeros(n), where=accel_d > 0)
-    t2 = np.divide(cruise_d, vc, out=np.full(n, np.inf), where=vc > 0)
-    t3 = np.divide(decel_d, (vo + vc) * 0.5, out=np.zeros(n), where=decel_d > 0)
+    shape = cruise.shape
+    t1 = np.divide(accel_d, (vi + vc) * 0.5, out=np.zeros(shape), where=accel_d > 0)
+    t2 = np.divide(cruise_d, vc, out=np.full(shape, np.inf), where=vc > 0)
+    t3 = np.divide(decel_d, (vo + vc) * 0.5, out=np.zeros(shape), where=decel_d > 0)
     return t1, t2, t3, vi, vc, vo

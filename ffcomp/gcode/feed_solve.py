@@ -136,7 +136,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
 
     def plan(F):
         cv2 = np.minimum(F, vmax) ** 2
-        return plan_chain(dist, cv2, acc, jv, start_v2, cv2[-1] if end_open else 0.0)
+        return plan_chain(dist, cv2, acc, jv, start_v2, cv2[..., -1] if end_open else 0.0)  # (F: (..., n))
 
     def sweeps(F, want, n, floor=None):
         for _ in range(n):
@@ -310,14 +310,15 @@ def _duration_jacobian(plan, F, t, free):
     col = np.full(n, -1)
     col[fi] = np.arange(fi.size)
     step, h, rows = 2 * REFINE_BAND + 1, 1e-6, np.arange(n)
-    ri, ci, vals = [], [], []
-    for c in range(min(step, n)):
+    groups = [c for c in range(min(step, n)) if np.any(fi % step == c)]
+    Fp = np.repeat(F[None], len(groups), axis=0)  # every group's perturbed feeds: one batched plan
+    for g, c in enumerate(groups):
         js = fi[fi % step == c]
-        if not js.size:
-            continue
-        Fp = F.copy()
-        Fp[js] *= np.exp(h)
-        dt = (plan(Fp)[0] - t) / h
+        Fp[g, js] *= np.exp(h)
+    dts = (plan(Fp)[0] - t) / h
+    ri, ci, vals = [], [], []
+    for g, c in enumerate(groups):
+        dt = dts[g]
         j = c + np.round((rows - c) / step).astype(int) * step  # the nearest perturbed segment
         ok = (np.abs(rows - j) <= REFINE_BAND) & (j >= 0) & (j < n)
         ok[ok] &= free[j[ok]]
