@@ -55,3 +55,23 @@ def test_chain_plan_equals_the_klipper_planner(seed, n, z_share, accel, scv, oth
     got = _ours(prof, pts, de, feed, accel, scv)
     assert got.shape == want.shape
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
+
+
+def test_trapezoids_plan_a_batch_of_feed_rates_bit_for_bit():
+    """Several feed-rate vectors over the same segments planned at once (the feed solve's duration
+    Jacobian) give each row exactly what the row alone gives."""
+    from ffcomp.gcode.chain_plan import trapezoids
+
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        n = int(rng.integers(1, 60))
+        dist, acc = rng.uniform(1e-3, 2.0, n), rng.uniform(500.0, 10000.0, n)
+        jv = np.concatenate([[rng.uniform(0.0, 100.0)], rng.uniform(0.0, 1e4, n - 1)])
+        cv2 = rng.uniform(1.0, 1e5, (5, n))
+        s0 = float(rng.uniform(0.0, 1e4))
+        e0 = cv2[:, -1] if rng.random() < 0.5 else 0.0
+        batch = trapezoids(dist, cv2, acc, jv, s0, e0)
+        for b in range(5):
+            one = trapezoids(dist, cv2[b], acc, jv, s0, e0[b] if np.ndim(e0) else e0)
+            for x, y in zip(batch, one):
+                assert np.array_equal(x[b], y)
