@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from ffcomp.compensate.inverse import InverseConfig
+from ffcomp.compensate.kernels import mech_kernels, mech_tail_samples
 from ffcomp.compensate.modal_fbs import MODES, ModalFbs, modal_split
 from ffcomp.compensate.stream import FbsStream, StreamingInverse
 from ffcomp.kinematics import inverse
@@ -30,8 +31,10 @@ def test_the_modal_solve_equals_the_coupled_one(which):
     assert isinstance(si.mech, ModalFbs)  # the centre kernel of both profiles splits
     cfg = InverseConfig()
     win, adv = si.mech.common.W, si.mech.common.A
-    K = np.einsum("l,ai,aj->ilj", si.mech.kernels[0], MODES[:1], MODES[:1]) + np.einsum(
-        "l,ai,aj->ilj", si.mech.kernels[1], MODES[1:], MODES[1:])  # the coupled kernel back
+    # the coupled solve on the model's own kernel, built as StreamingInverse._start builds it
+    mats0 = si.model.matrices(si.x_centre[None], check=False)
+    L = si.basis.support + mech_tail_samples(mats0, si.dt, cfg.kernel_tol)
+    K = mech_kernels(mats0, si.basis, L, cfg.substeps)[0]
     coupled = FbsStream(K, si.basis, win, adv, cfg.reg, cfg.row_stride)
     modal = ModalFbs(*si.mech.kernels, si.basis, win, adv, cfg.reg, cfg.row_stride)
     assert modal.common.lam == pytest.approx(coupled.lam, rel=1e-12)

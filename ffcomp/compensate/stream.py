@@ -198,7 +198,7 @@ class FbsStream:
         if not np.isfinite(c).all():
             raise SolverError(f"FBS solution not finite in the window at sample {self.w0}")
         if bounded:
-            c = self._bounded(c, rows, nJ, a, rhs, factor, lam, pins)
+            c = self._bounded(c, rows, nJ, a, rhs, factor, pins)
         c = c[:n_commit]
         # predicted output of the committed bases: the overlap-add of identical kernels, by FFT
         n_y = n_commit * m + self.L - 1
@@ -330,7 +330,7 @@ class FbsStream:
         return bool(np.max(np.abs(call)) <= D and np.max(np.abs(d1)) / h + vmax <= V
                     and smax + amax <= Acc)
 
-    def _bounded(self, c, rows, nJ, a, rhs, factor, lam, pins):
+    def _bounded(self, c, rows, nJ, a, rhs, factor, pins):
         import osqp
         import scipy.sparse as sp
 
@@ -349,11 +349,11 @@ class FbsStream:
             B0, B1, B2 = self._basis_rows(np.arange(nJ) * m, r)
             live = np.abs(B0).sum(1) + np.abs(B2).sum(1) > 0  # rows the new bases can still change
             r, B0, B1, B2 = r[live], B0[live], B1[live], B2[live]
-            P = self._basis_rows(np.arange(-len(jp), 0) * m, r) if len(jp) else (np.zeros((len(r), 0)),) * 3
-            # (banded: the products below as one sparse product, a tenth of the dense one's time)
-            self._rows_cache[ckey] = (r, B0, B1, B2, *P, sp.csr_matrix(np.vstack([B0, B1, B2])),
-                                      sp.csr_matrix(np.vstack(P)) if len(jp) else None)
-        r, B0, B1, B2, P0, P1, P2, Bs, Ps = self._rows_cache[ckey]
+            # the committed bases' rows, stacked like B0, B1, B2 (banded: sparse products, a tenth
+            # of the dense ones' time)
+            Ps = sp.csr_matrix(np.vstack(self._basis_rows(np.arange(-len(jp), 0) * m, r))) if len(jp) else None
+            self._rows_cache[ckey] = (r, B0, B1, B2, sp.csr_matrix(np.vstack([B0, B1, B2])), Ps)
+        r, B0, B1, B2, Bs, Ps = self._rows_cache[ckey]
         R = len(r)
         e0, e1, e2 = np.split(Ps @ cp, 3) if Ps is not None else (np.zeros((R, self.C)),) * 3  # (R, C)
         vref, aref = self.rvel[a + r], self.racc[a + r]
@@ -363,8 +363,8 @@ class FbsStream:
         # the command's acceleration a_ref + s'' within +-Ab, and s'' within the common-mode band
         a_lo, a_hi = -Ab - aref, Ab - aref
         if band is not None and self.C > 1 and self.comp_fn is not None and len(self.cpos) >= a + rows:
-            return self._bounded_joint(c, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
-                                       factor, lam, pins.size > 0)
+            return self._bounded_joint(c, a, r, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                                       factor, rows == self.W and pins.size == 0)
         b0, b1, b2 = np.split(Bs @ c, 3)
         val, vel, acc = b0 + e0, b1 + e1 + vref, b2 + e2 + aref
         if band is not None:
@@ -383,11 +383,7 @@ class FbsStream:
         sc = 1e-4
         key = (nJ, rows, pins.size == 0)
         if key not in self._qp_cache or pins.size:
-            if rows == self.W and pins.size == 0:
-                G = self.Phi.T @ self.Phi
-                G[np.diag_indices_from(G)] += lam
-            else:  # rare: the tail window or pinned rows
-                G = np.linalg.inv(_chol_to_inv(factor))
+            G = self._gram_of(rows == self.W and pins.size == 0, factor)
             gn = float(np.mean(np.diag(G))) * sc * sc
             Araw = np.vstack([B0, B1, B2]) * sc
             rn = np.maximum(np.max(np.abs(Araw), axis=1), 1e-300)
@@ -414,7 +410,6 @@ class FbsStream:
             if band is not None and (not ok or res.x is None or not np.all(np.isfinite(res.x))):
                 # the committed past leaves no room for the common-mode band: the plain bounds only
                 self.band_dropped += 1
-                R = len(r)
                 lo[2 * R:] = -Ab[:, ch] - aref[:, ch] - e2[:, ch]
                 hi[2 * R:] = Ab[:, ch] - aref[:, ch] - e2[:, ch]
                 solver.update(l=lo / rn, u=hi / rn)
@@ -429,8 +424,20 @@ class FbsStream:
             out[:, ch] = res.x * sc
         return out
 
-    def _bounded_joint(self, c, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor, lam,
-                       pinned, _dirs=None):
+    def _gram_of(self, full: bool, factor) -> np.ndarray:
+        """The window's Gram matrix with its Tikhonov term (for OSQP's objective): a ``full`` window's
+        without pins, the same every time (cached), else (the tail window, pinned rows) rebuilt from
+        the window's factor."""
+        if full:
+            G = getattr(self, "_gram", None)
+            if G is None:
+                G = self._gram = self.Phi.T @ self.Phi
+                G[np.diag_indices_from(G)] += self.lam
+            return G
+        return np.linalg.inv(_chol_to_inv(factor))
+
+    def _bounded_joint(self, c, a, r, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs, factor,
+                       full, _dirs=None):
         """The bounds of :meth:`set_bounds` on every channel plus, on the rows the common-mode band
         covers, the components of ``set_common_accel_bound(components=...)``
         (:meth:`set_common_accel_bound`): one QP over all channels, which those components couple.
@@ -467,8 +474,9 @@ class FbsStream:
         A_box = self._abox_cache.get(akey)
         if A_box is None:
             A_box = self._abox_cache[akey] = sp.kron(sp.identity(C, format="csr"), Bs, format="csr")
-        rr, jj = np.nonzero(B2[ra])  # (B2's pattern on the band's rows, row-major)
-        bv = B2[ra][rr, jj]
+        B2a = B2[ra]
+        rr, jj = np.nonzero(B2a)  # (its pattern on the band's rows, row-major)
+        bv = B2a[rr, jj]
         K_, R_ = M.shape[1], len(ra)
         kk, cc = np.meshgrid(np.arange(K_), np.arange(C), indexing="ij")  # (K, C) blocks
         A_cmp = sp.csr_matrix(((M[rr][:, kk, cc] * bv[:, None, None]).transpose(1, 2, 0).reshape(-1),
@@ -493,13 +501,7 @@ class FbsStream:
             """OSQP's scaled problem (coefficients in units of ``sc``, the objective normalised, every
             constraint row to unit size), built only when the exact solve gives up."""
             if not osqp_parts:
-                if nJ * self.n_in == self.Phi.shape[1] and not pinned:
-                    G = getattr(self, "_gram", None)
-                    if G is None:  # the same in every full window
-                        G = self._gram = self.Phi.T @ self.Phi
-                        G[np.diag_indices_from(G)] += lam
-                else:  # rare: the tail window or pinned rows
-                    G = np.linalg.inv(_chol_to_inv(factor))
+                G = self._gram_of(full, factor)
                 gn = float(np.mean(np.diag(G))) * sc * sc
                 A = A_raw.tocsc() * sc
                 rn = np.maximum(np.abs(A).max(axis=1).toarray().ravel(), 1e-300)
@@ -548,8 +550,8 @@ class FbsStream:
             Lb2 = np.maximum(L2, np.abs(np.einsum("rkc,rc->rk", M2, aref[ra])) * 1.0001)
             if np.any(np.abs(np.einsum("rkc,rc->rk", M2, acc2[ra])) > Lb2 * 1.02):
                 self.qp_redirected += 1
-                return self._bounded_joint(out, a, r, B0, B1, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
-                                           factor, lam, pinned, _dirs=(vel2, acc2))
+                return self._bounded_joint(out, a, r, B2, Bs, e0, e1, e2, vref, aref, Vb, Ab, band, nJ, rhs,
+                                           factor, full, _dirs=(vel2, acc2))
         return out
 
     def _values(self, upto: int) -> np.ndarray:
