@@ -16,7 +16,7 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "plan_speeds", "REST_POINT_NEAR_MM", "CORNER_LEAD_MAX_MM"]
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "plan_speeds", "REST_POINT_NEAR_MM", "CORNER_LEAD_MAX_MM"]
 
 #: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
 #: than a segment of that length being appended: a micrometre's segment into a corner caps the
@@ -138,6 +138,62 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     if not (k0 + a - 1 < k < k0 + a + m - 1e-6):
         return None
     return m - 1, start + np.array(mv.unit[:3], float) * reach, k
+
+
+def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
+                on_plan: np.ndarray | None, next_move: PlannedMove | None, end, fw_accel_mm_s2: float):
+    """How a motion run that ends on the plan's corner (see :func:`rest_end`) comes into it:
+    ``(n, point mm, time / dt on the writer's count)``, its last ``n`` samples before the corner
+    point dropped and, unless ``point`` is None, the first of them moved to ``point`` at that time;
+    or None to keep its samples.
+
+    Klipper caps a junction by the centripetal rule of the segment before it as well as the one
+    after, ``v^2 <= d a tan(theta/2) / 2`` with that segment's length ``d`` and acceleration
+    ``a``.  A pinned z move (a z-hop, a layer change) that runs into an XY travel at the plan's
+    ``v_j`` ended with a sample's chord of a micrometre or two: the firmware slowed to under a
+    third of ``v_j`` there and the ramp before it ran up to 0.36 ms late (the sample files' z-hops
+    on other_delta, where ``max_z_accel * d/|dz|`` is the z move's acceleration).  A longer
+    segment lets the firmware take the corner faster than the plan (the output's square corner
+    velocity is the header's), and the ramp runs early.  So the segment into the corner is
+    ``2 v_j^2 / (a tan(theta/2))`` long (at most :data:`CORNER_LEAD_MAX_MM`; ``a`` the firmware's
+    acceleration along the move, ``fw_accel_mm_s2``): it starts at the plan's point there at the
+    plan's time, or at the sample just before that point (within :data:`CORNER_LEAD_GAP_MM`: the two
+    would print as one point).  Only where the samples dropped and the one before them lie on the
+    plan (a straight line: the firmware's one segment decelerates as the plan does), within
+    :data:`CORNER_LEAD_MAX_SAMPLES` of the corner, and the point falls in the plan's deceleration.
+    """
+    if (end is None or mv is None or next_move is None or next_move.kind != MOVE or on_plan is None
+            or mv.end_v_mm_s <= 1e-9 or fw_accel_mm_s2 <= 0.0 or mv.accel_mm_s2 <= 0.0):
+        return None
+    jc = -float(np.dot(mv.unit[:3], next_move.unit[:3]))
+    if jc < -0.999:
+        return None
+    tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
+    v = mv.end_v_mm_s
+    reach = min(2.0 * v * v / (fw_accel_mm_s2 * tan_half), CORNER_LEAD_MAX_MM)
+    pt, k_end, appended = np.asarray(end[0], float), float(end[1]), int(end[3])
+    last = b - 1 if appended else b - 2  # the last sample before the corner point
+    lo = max(a + 1, last - CORNER_LEAD_MAX_SAMPLES + 1)
+    n = 0
+    for s in range(last, lo - 1, -1):
+        if np.linalg.norm(X[s] - pt) >= reach:
+            break
+        n += 1
+    if n == 0:
+        return None
+    first = last - n + 1
+    if first - 1 < a or not on_plan[first - 1:last + 1].all():
+        return None
+    if np.linalg.norm(X[first - 1] - pt) < reach + CORNER_LEAD_GAP_MM:
+        return n, None, None
+    acc = mv.accel_mm_s2
+    tau = (np.sqrt(v * v + 2.0 * acc * reach) - v) / acc  # the plan's time from the point to the corner
+    if tau > mv.decel_t_s:
+        return None
+    k = k_end - tau / dt
+    if not (k0 + first - 1 + 1e-6 < k < k_end - 1e-6):
+        return None
+    return n, pt - np.array(mv.unit[:3], float) * reach, k
 
 
 def rest_start(dt: float, k0: int, a: int, mv: PlannedMove | None, k_plan: np.ndarray | None,

@@ -48,7 +48,7 @@ from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
-from .plan_clock import REST_POINT_NEAR_MM, corner_lead, plan_speeds, rest_end, rest_start
+from .plan_clock import REST_POINT_NEAR_MM, corner_lead, corner_tail, plan_speeds, rest_end, rest_start
 from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
@@ -327,6 +327,7 @@ class GcodeWriter:
         ch = _Chunk(R)
         lead_pt, lead_k, lead_e, catch, run_ids, a_s, n_s = [], [], [], [], [], [], []
         leads = []  # per motion run: its first point moved out of the plan's corner (plan_clock.corner_lead)
+        tails = []  # per motion run: its last samples dropped before the plan's corner (plan_clock.corner_tail)
         run_ends = []  # per motion run: (point mm, time / dt, e mm, appended) or None (plan_clock.rest_end)
         went = []  # per motion run: it leaves rest on the plan's time (see plan_clock.rest_start)
         rest_go = []  # per motion run: it leaves at once from the plan's rest point the run before ended on
@@ -367,6 +368,7 @@ class GcodeWriter:
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 run_ends.append(end)
+                tails.append(self._corner_tail(k0, a, b, X, mv, on_plan, end) if self.chain is not None else None)
                 at_rest_end = end is not None
                 if end is not None:  # the run ends where and when the plan comes to rest
                     last_pt = np.round(end[0], 4)
@@ -412,7 +414,18 @@ class GcodeWriter:
             P[at] = np.array([e[0] for _, e in ends])
             K[at] = [e[1] for _, e in ends]
             Ef[at] = [e[2] for _, e in ends]
-        dropped = []  # points a run's corner lead drops (plan_clock.corner_lead)
+        dropped = []  # points a run's corner lead and tail drop (plan_clock.corner_lead, corner_tail)
+        tail_pts = []  # points a run's corner tail moved (written)
+        for m_, tail in enumerate(tails):
+            if tail is not None:
+                n_tail, pt, k_pt = tail
+                at_ = last[m_] - 1  # the slot of the run's last sample before the corner point
+                lo_ = at_ - n_tail + 1
+                if pt is not None:  # the first of them moved to the point, the rest dropped
+                    P[lo_], K[lo_] = pt, k_pt
+                    tail_pts.append(lo_)
+                    lo_ += 1
+                dropped.extend(range(lo_, at_ + 1))
         for m_, lead in enumerate(leads):
             if lead is not None:
                 n_drop, pt, k_pt = lead
@@ -425,6 +438,7 @@ class GcodeWriter:
         keep[offs[catch] + 1] = True
         if ends:  # the point before a rest end keeps its own value and time
             keep[at - 1] = True
+        keep[tail_pts] = True
         if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
             keep |= dense[src]
         forced = keep.copy()
@@ -585,6 +599,14 @@ class GcodeWriter:
         ch.seg_run = run_ids[srun][rows]
         self.last_pt = Pr[last[-1]].copy()
         return ch
+
+    def _corner_tail(self, k0: int, a: int, b: int, X: np.ndarray, mv, on_plan, end):
+        """:func:`~ffcomp.gcode.plan_clock.corner_tail` with the firmware's acceleration along the move."""
+        if end is None or mv is None or mv.end_v_mm_s <= 1e-9:
+            return None
+        st, en = np.array(mv.start_mm[:3], float)[None], np.array(mv.end_mm[:3], float)[None]
+        acc = float(segment_limits(self.chain, st, en, np.zeros(1))[1][0])
+        return corner_tail(self.dt, k0, a, b, X, mv, on_plan, self.moves.get(mv.index + 1), end, acc)
 
     def _extrusion(self, ch, de_ref, seg_run, ext_de, ext_runs) -> np.ndarray:
         """Relative extrusion of every segment and extruder-only move of a chunk, in written order.
