@@ -9,6 +9,7 @@ from ffcomp.gcode.plan_clock import (
     CORNER_LEAD_GAP_MM,
     REST_POINT_NEAR_MM,
     corner_lead,
+    corner_tail,
     plan_speeds,
     rest_end,
     rest_start,
@@ -162,4 +163,67 @@ def test_a_run_leaves_a_corner_with_a_first_segment_the_junction_allows(t0):
     # a sharper turn (135 degrees between the directions) reaches further: tan(22.5 deg) < 1
     back = travel._replace(unit=(np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0))
     far = corner_lead(DT, 100, a, len(k), X, down, k, on, lead, back)
+    assert far is not None and far[0] >= n_drop
+
+
+def _corner_up(v_j=2.739, a=3000.0, t0=0.0103, dz=0.2):
+    """A z move up from (0, 0, 1) that brakes at ``a`` (mm/s^2) into the corner with an X travel it
+    passes at ``v_j`` (mm/s), and that travel."""
+    t = (np.sqrt(v_j * v_j + 2.0 * a * dz) - v_j) / a
+    up = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz,
+                     (0.0, 0.0, 1.0, 0.0), v_j + a * t, v_j + a * t, v_j, a, 0.0, 0.0, t)
+    travel = PlannedMove(2, 3, "move", t0 + t, (0.0, 0.0, 1.0 + dz, 0.0), (10.0, 0.0, 1.0 + dz, 0.0), 10.0,
+                         (1.0, 0.0, 0.0, 0.0), v_j, 100.0, 0.0, 3000.0, 0.03, 0.07, 0.03)
+    return up, travel
+
+
+@pytest.mark.parametrize("v_j", [2.739, 5.0])
+@pytest.mark.parametrize("t0", [0.0103, 0.0108, 0.0101, 0.0106, 0.0109])
+def test_a_run_comes_into_a_corner_with_a_last_segment_the_junction_allows(t0, v_j):
+    """The mirror of the corner lead: a run following the plan into a right-angled corner it passes
+    at v_j (a z-hop into its travel).  Klipper caps the junction by the segment before it too, at
+    sqrt(d a tan(45 deg) / 2), so the segment into the corner is 2 v_j^2 / a long: from the plan's
+    point there at the plan's time, or from a sample just before that point; the samples after it
+    go."""
+    up, travel = _corner_up(t0=t0, v_j=v_j)
+    k = np.arange(0, 40)
+    a = int(np.ceil(t0 / DT))  # the move's first sample
+    b = int(np.ceil(up.t_end_s / DT))  # samples before the corner: a .. b - 1
+    X = np.zeros((len(k), 3))
+    X[:, 2] = 1.0 + np.array([up.distance_at(t) for t in k * DT])
+    on = np.ones(len(k), bool)
+    end = rest_end(DT, 100, b, X, up, k, on, travel)
+    assert end is not None
+    corner = np.array([0.0, 0.0, 1.2])
+    np.testing.assert_allclose(end[0], corner, atol=1e-12)
+    reach = 2.0 * up.end_v_mm_s**2 / up.accel_mm_s2
+    got = corner_tail(DT, 100, a, b, X, up, on, travel, end, 3000.0)
+    last = b - 1 if end[3] else b - 2  # the last sample before the corner point
+    d = corner[2] - X[:last + 1, 2]
+    within = np.nonzero(d < reach)[0]
+    if got is None:  # the last sample already starts a segment just longer than the point's
+        assert not within.size and d[last] < reach + CORNER_LEAD_GAP_MM
+        return
+    n_drop, pt, k_pt = got
+    first = int(within[0]) if within.size else last  # none within: the last sample moves out
+    if d[first - 1] < reach + CORNER_LEAD_GAP_MM:
+        assert n_drop == last - first + 1 and pt is None
+    else:
+        assert n_drop == last - first + 1
+        np.testing.assert_allclose(pt, corner - [0.0, 0.0, reach], atol=1e-12)
+        t_pt = (k_pt - 100) * DT  # back on the plan's clock
+        assert up.distance_at(t_pt) == pytest.approx(up.distance_mm - reach, abs=1e-9)
+        assert 100 + first - 1 < k_pt < end[1]
+    # the segment into the corner now lets the firmware pass it at v_j, and no faster
+    seg = reach if pt is not None else d[first - 1]
+    assert 0.5 * seg * 1.0 * 3000.0 >= up.end_v_mm_s**2 * (1 - 1e-9)
+    # no rule on a straight line, off the plan, from rest, or before an extruder-only move
+    straight = travel._replace(unit=(0.0, 0.0, 1.0, 0.0))
+    assert corner_tail(DT, 100, a, b, X, up, on, straight, end, 3000.0) is None
+    assert corner_tail(DT, 100, a, b, X, up, ~on, travel, end, 3000.0) is None
+    assert corner_tail(DT, 100, a, b, X, up._replace(end_v_mm_s=0.0), on, travel, end, 3000.0) is None
+    assert corner_tail(DT, 100, a, b, X, up, on, travel._replace(kind="extrude"), end, 3000.0) is None
+    # a sharper turn (135 degrees between the directions) reaches further: tan(22.5 deg) < 1
+    back = travel._replace(unit=(np.sqrt(0.5), 0.0, -np.sqrt(0.5), 0.0))
+    far = corner_tail(DT, 100, a, b, X, up, on, back, end, 3000.0)
     assert far is not None and far[0] >= n_drop

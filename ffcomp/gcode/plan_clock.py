@@ -16,7 +16,8 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "plan_speeds", "REST_POINT_NEAR_MM", "CORNER_LEAD_MAX_MM"]
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "plan_speeds", "REST_POINT_NEAR_MM",
+           "CORNER_LEAD_MAX_MM"]
 
 #: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
 #: than a segment of that length being appended: a micrometre's segment into a corner caps the
@@ -144,7 +145,8 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
                 on_plan: np.ndarray | None, next_move: PlannedMove | None, end, fw_accel_mm_s2: float):
     """How a motion run that ends on the plan's corner (see :func:`rest_end`) comes into it:
     ``(n, point mm, time / dt on the writer's count)``, its last ``n`` samples before the corner
-    point dropped and, unless ``point`` is None, the first of them moved to ``point`` at that time;
+    point dropped and, unless ``point`` is None, the first of them moved to ``point`` at that time
+    (where no sample lies within the segment's length, the last one moves out to it);
     or None to keep its samples.
 
     Klipper caps a junction by the centripetal rule of the segment before it as well as the one
@@ -171,6 +173,8 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
     v = mv.end_v_mm_s
     reach = min(2.0 * v * v / (fw_accel_mm_s2 * tan_half), CORNER_LEAD_MAX_MM)
+    if reach < 1e-3:
+        return None
     pt, k_end, appended = np.asarray(end[0], float), float(end[1]), int(end[3])
     last = b - 1 if appended else b - 2  # the last sample before the corner point
     lo = max(a + 1, last - CORNER_LEAD_MAX_SAMPLES + 1)
@@ -179,8 +183,10 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
         if np.linalg.norm(X[s] - pt) >= reach:
             break
         n += 1
-    if n == 0:
-        return None
+    if n == 0:  # the last sample lies beyond the point: it moves there (the junction no faster)
+        if last < a or np.linalg.norm(X[last] - pt) < reach + CORNER_LEAD_GAP_MM:
+            return None
+        n = 1
     first = last - n + 1
     if first - 1 < a or not on_plan[first - 1:last + 1].all():
         return None
