@@ -99,6 +99,7 @@ class RepairConfig:
     z_only_hops: bool = False
     lift_xy_accel_factor: float = 100.0
     lead_in_s: float = 0.002
+    still_near_steep: bool = True
 
 
 class PulseResponses:
@@ -337,9 +338,45 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
     return c + out @ op.Jinv.T
 
 
+def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin: np.ndarray, J: np.ndarray,
+               dt_s: float, z_limit: float) -> np.ndarray | None:
+    """The free knots ``z`` (nf, 3) of :func:`repair_window` with the repaired command's nozzle z
+    acceleration within ``z_limit`` (m/s^2) on its free samples (or within what the command had
+    before the repair, where that is more), or None where the unconstrained knots ``z0`` keep it
+    already (or the exact solve gives up).
+
+    Klipper caps every segment's acceleration at ``max_z_accel * d/|dz|``, so a nozzle that moves
+    in z harder than ``max_z_accel`` runs late; the repair's acceleration penalty is soft, and next
+    to a pinned z move (the lift after homing, a layer change's) the corrected command dipped and
+    rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  One small QP
+    (:func:`~ffcomp.compensate.stream._active_set_qp`) on the window's normal equations.
+    """
+    from scipy.sparse import csr_matrix
+
+    from .stream import _active_set_qp
+
+    n, nf = op.S.shape
+    rows = np.nonzero(~pin[1:-1])[0] + 1
+    if n < 3 or not rows.size:
+        return None
+    jz = J[2] / dt_s**2
+    c2 = np.diff(c, 2, axis=0)[rows - 1]  # the command's own second difference
+    base = (c2 + _second_difference(o)[rows]) @ jz
+    D2 = _second_difference(op.S)[rows]
+    A = np.hstack([jz[j] * D2 for j in range(3)])  # (R, 3 nf), z carriage-major
+    zvec0 = z0.T.reshape(-1)
+    lim = np.maximum(z_limit, np.abs(c2 @ jz) * 1.0001)
+    v = A @ zvec0 + base
+    if np.all(np.abs(v) <= lim * 1.02):
+        return None
+    zv = _active_set_qp(zvec0, csr_matrix(A), -lim - base, lim - base,
+                        lambda r: cho_solve(op.factor, r, check_finite=False), 3 * nf, 1)
+    return None if zv is None else zv.reshape(3, nf).T
+
+
 def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float,
                   cfg: RepairConfig = RepairConfig(), cache: dict | None = None, key=None,
-                  zpin: np.ndarray | None = None) -> np.ndarray:
+                  zpin: np.ndarray | None = None, z_limit_m_s2: float | None = None) -> np.ndarray:
     """The repaired command of one window: ``c`` (n, 3) with ``q`` on the pinned samples.
 
     ``H`` (L, 3, 3): pulse response at the window's pose; ``J`` (3, 3): the Jacobian dX/dq there;
@@ -349,7 +386,8 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     only the nozzle's z is pinned to the plan's (``J q``'s z row, to first order), its x and y free
     (a z-hop right after a retraction: the firmware must run its z as planned, but the command may
     pre-actuate the travel that follows in x and y meanwhile); the correction is then solved in the
-    nozzle frame.
+    nozzle frame.  ``z_limit_m_s2`` (optional): the firmware's ``max_z_accel``; the repaired command's
+    nozzle z acceleration stays within it on the free samples (:func:`_z_bounded`).
     """
     pin = np.asarray(pin, bool)
     if zpin is not None and np.any(zpin & ~pin):
@@ -369,6 +407,10 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     D2o = _second_difference(o) * op.wrow
     rhs = -(op.Phi.T @ Yo.T.reshape(-1)) / cfg.err_m**2 - (op.D2S.T @ D2o @ op.P.T).T.reshape(-1)
     z = cho_solve(op.factor, rhs, check_finite=False).reshape(3, op.nf).T
+    if z_limit_m_s2 is not None:
+        zb = _z_bounded(op, c, o, z, pin, J, dt_s, z_limit_m_s2)
+        if zb is not None:
+            z = zb
     out = c + o + op.S @ z
     out[pin] = q[pin]
     return out

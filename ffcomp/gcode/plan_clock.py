@@ -162,7 +162,8 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     plan's time, or at the sample just before that point (within :data:`CORNER_LEAD_GAP_MM`: the two
     would print as one point).  Only where the samples dropped and the one before them lie on the
     plan (a straight line: the firmware's one segment decelerates as the plan does), within
-    :data:`CORNER_LEAD_MAX_SAMPLES` of the corner, and the point falls in the plan's deceleration.
+    :data:`CORNER_LEAD_MAX_SAMPLES` of the corner, and the point falls in the plan's deceleration or
+    the cruise before it.
     """
     if (end is None or mv is None or next_move is None or next_move.kind != MOVE or on_plan is None
             or mv.end_v_mm_s <= 1e-9 or fw_accel_mm_s2 <= 0.0 or mv.accel_mm_s2 <= 0.0):
@@ -194,8 +195,11 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
         return n, None, None
     acc = mv.accel_mm_s2
     tau = (np.sqrt(v * v + 2.0 * acc * reach) - v) / acc  # the plan's time from the point to the corner
-    if tau > mv.decel_t_s:
-        return None
+    if tau > mv.decel_t_s:  # the point lies in the cruise before the braking
+        decel_d = 0.5 * (mv.cruise_v_mm_s + v) * mv.decel_t_s
+        tau = mv.decel_t_s + (reach - decel_d) / max(mv.cruise_v_mm_s, 1e-9)
+        if tau > mv.decel_t_s + mv.cruise_t_s:
+            return None
     k = k_end - tau / dt
     if not (k0 + first - 1 + 1e-6 < k < k_end - 1e-6):
         return None

@@ -391,7 +391,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 else None
             steep = (lambda meta: moves_where(meta["move_index"], moves, zlim.limited)) if zlim is not None else None
             stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep,
-                                  zpin_fn=zpins)
+                                  zpin_fn=zpins, z_limit_m_s2=zlim.lim.max_z_accel * 1e-3 if zlim is not None else None)
         for qc, meta in stream:
             emit(qc, meta)
         if cuts is not None:

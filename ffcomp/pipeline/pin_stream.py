@@ -32,10 +32,26 @@ class PinStats:
         self.max_change_m = 0.0
 
 
+def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
+    """The samples where the plan stands still that adjoin ``seed`` (a mask) through standing samples
+    only, at most ``reach`` samples from it."""
+    n = len(seed)
+    still = np.zeros(n, bool)
+    still[1:-1] = (max_abs3(qref[1:-1] - qref[:-2]) < 1e-12) & (max_abs3(qref[2:] - qref[1:-1]) < 1e-12)
+    out = seed.copy()
+    for _ in range(reach):
+        grow = still & ~out & (np.r_[False, out[:-1]] | np.r_[out[1:], False])
+        if not grow.any():
+            break
+        out |= grow
+    return out & ~seed
+
+
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
                  cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3,
                  steep_fn: Callable[[dict], np.ndarray] | None = None,
-                 zpin_fn: Callable[[dict], np.ndarray] | None = None) -> Iterator[tuple[np.ndarray, dict]]:
+                 zpin_fn: Callable[[dict], np.ndarray] | None = None,
+                 z_limit_m_s2: float | None = None) -> Iterator[tuple[np.ndarray, dict]]:
     """Yield ``(q_cmd, meta)`` chunks with the pinned samples held on the plan (``meta["q"]``).
 
     ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives; ``steep_fn(meta)``
@@ -45,6 +61,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     ``max_z_accel * d/|dz|`` (a fast z move right after a pinned z-hop ran 7.7 ms late without).
     ``zpin_fn(meta)`` (optional): samples where only the nozzle's z is pinned to the plan
     (:func:`~ffcomp.compensate.pin_repair.repair_window`'s ``zpin``), x and y free.
+    ``z_limit_m_s2`` (optional): the firmware's ``max_z_accel``, which the repaired command's nozzle z
+    acceleration keeps (:func:`~ffcomp.compensate.pin_repair.repair_window`).
     """
     stats = stats if stats is not None else PinStats()
     responses = PulseResponses(model, dt_s, cfg)
@@ -99,7 +117,10 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             buf_next[en + 1] = buf_pin[en + 1] = True
         qtgt = np.where(buf_rest[:, None], buf_qt, qref)
         safe = n if final else max(n - M, 0)
-        any_pin = buf_pin | buf_zpin
+        pin_now = buf_pin
+        if cfg.still_near_steep and n > 2:
+            pin_now = buf_pin | _still_near(buf_pin & buf_steep, qref, 2 * M)
+        any_pin = pin_now | buf_zpin
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
             if not any_pin[s0:s1].any():
                 continue
@@ -117,9 +138,9 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
                 steep = bool(np.any(buf_steep[w0:w1] & ~any_pin[w0:w1]))
-                new = repair_window(responses.at(pose), old, qtgt[w0:w1], buf_pin[w0:w1], J, dt_s,
+                new = repair_window(responses.at(pose), old, qtgt[w0:w1], pin_now[w0:w1], J, dt_s,
                                     cfg_steep if steep else cfg, cache=ops, key=(key, steep),
-                                    zpin=buf_zpin[w0:w1] & ~buf_pin[w0:w1])
+                                    zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(any_pin[a:b].sum())
