@@ -271,3 +271,83 @@ def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     # move 0 (a travel into z move 1): its samples at 8 and 9 ms; move 2 extrudes: none of it
     assert np.nonzero(hit)[0].tolist() == [8, 9]
     assert not lead_into(idx, moves, t, 0.0, pick).any()
+
+
+def test_the_repair_keeps_the_nozzle_z_acceleration_within_the_firmware_limit(model):
+    """Next to a pinned z move the repair's soft penalty let the command dip and rise in z faster
+    than ``max_z_accel`` allows (the firmware then ran late).  With ``z_limit_m_s2`` the repaired
+    command's nozzle z acceleration (``J`` z row times its second difference) stays within the
+    limit, or within what the command had there before the repair, on every free sample; the pins
+    still hold; a limit that does not bind changes nothing; the model's response to the change
+    grows (the price of the limit) but stays well below a plain cut's."""
+    pose = np.array([0.0, 0.0, 0.01])
+    H = PulseResponses(model, DT).at(pose)
+    J = jacobian(model.geometry, pose)
+    n = 200
+    t = np.arange(n) * DT
+    q = np.zeros((n, 3)) + 0.25
+    # a common-mode (z) pre-actuation the pins cut off
+    c = q + 30e-6 * np.exp(-((t - 0.1) / 0.006) ** 2)[:, None] * np.ones(3)
+    pin = np.zeros(n, bool)
+    pin[100:140] = True
+
+    def z_acc(x):
+        return (np.diff(x, 2, axis=0) @ J[2]) / DT**2  # samples 1 .. n-2
+
+    free = ~pin[1:-1]
+    cfg = RepairConfig()
+    loose = repair_window(H, c, q, pin, J, DT, cfg)
+    peak = float(np.max(np.abs(z_acc(loose)[free])))
+    own = np.abs(z_acc(c))
+    limit = 0.4 * peak
+    assert limit > float(np.max(own[free])) * 0.5  # the limit binds on the repair, not on c itself
+    tight = repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=limit)
+    assert np.array_equal(tight[pin], q[pin])
+    a = np.abs(z_acc(tight))[free]
+    assert np.all(a <= np.maximum(limit, own[free] * 1.0001) * (1 + 1e-6))
+    assert not np.allclose(tight, loose)
+    np.testing.assert_allclose(repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=10 * peak), loose, atol=1e-15)
+    e = {k: np.linalg.norm(_response(H, x - c)) for k, x in
+         (("loose", loose), ("tight", tight), ("cut", np.where(pin[:, None], q, c)))}
+    assert e["loose"] <= e["tight"] < 0.6 * e["cut"]
+
+
+def test_the_plan_standing_still_next_to_a_steep_pin_is_pinned_too():
+    """``pin_stream._still_near``: the samples where the plan stands still that adjoin a seed
+    through standing samples only, at most ``reach`` away; never across a moving sample."""
+    from ffcomp.pipeline.pin_stream import _still_near
+
+    q = np.zeros((30, 3))
+    q[:3] = np.arange(3)[:, None] * 1e-3 - 3e-3  # moving up to sample 3, standing on 3 .. 19
+    q[20:] = np.arange(1, 11)[:, None] * 1e-3  # moving again from sample 20 on
+    seed = np.zeros(30, bool)
+    seed[12:15] = True
+    got = _still_near(seed, q, 5)
+    # (a sample stands still where the plan holds its position on both sides: 4 .. 18)
+    assert np.nonzero(got)[0].tolist() == [7, 8, 9, 10, 11, 15, 16, 17, 18]
+    got = _still_near(seed, q, 50)
+    assert np.nonzero(got)[0].tolist() == list(range(4, 12)) + list(range(15, 19))
+    assert not _still_near(np.zeros(30, bool), q, 50).any()
+
+
+def test_a_pinned_lift_after_homing_starts_from_a_command_standing_still(tmp_path):
+    """A slicer's start (G28, the lift, a retraction, the move to the first layer): the lift is
+    pinned (it runs into the retraction); the free command before it pre-actuated it, and the
+    repair turned that into a dip and rise of the nozzle by 13 um in a few milliseconds at the top
+    of the tower, which the firmware ran 0.21 ms late (cube_cura.gcode, default profile).  The
+    plan's standing samples next to the pinned lift are pinned too (``RepairConfig.still_near_steep``)."""
+    from ffcomp.compensate.pin_repair import RepairConfig as RC
+    from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
+
+    src = tmp_path / "start.gcode"
+    src.write_text("G90\nM83\nG28\nG1 Z5 F5000\nG1 E-0.8 F2100\nG1 Z0.5 F600\nG0 X9 Y-15 F6000\nG1 Z0.3 F600\n"
+                   "G1 E0.8 F2100\nG1 X15 Y-9 E0.4 F1800\nG1 X15 Y9 E1\n")
+
+    def drift_ms(on: bool) -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), default_profile(),
+                            CompensateOptions(predict=False, repair=RC(still_near_steep=on), self_check_drift_ms=1e9,
+                                              self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    assert abs(drift_ms(True)) < 0.1  # +0.013 ms
+    assert abs(drift_ms(False)) > 0.15  # the case: +0.214 ms

@@ -166,26 +166,35 @@ def test_a_run_leaves_a_corner_with_a_first_segment_the_junction_allows(t0):
     assert far is not None and far[0] >= n_drop
 
 
-def _corner_up(v_j=2.739, a=3000.0, t0=0.0103, dz=0.2):
+def _corner_up(v_j=2.739, a=3000.0, t0=0.0103, dz=0.2, cruise_v=None):
     """A z move up from (0, 0, 1) that brakes at ``a`` (mm/s^2) into the corner with an X travel it
-    passes at ``v_j`` (mm/s), and that travel."""
-    t = (np.sqrt(v_j * v_j + 2.0 * a * dz) - v_j) / a
-    up = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz,
-                     (0.0, 0.0, 1.0, 0.0), v_j + a * t, v_j + a * t, v_j, a, 0.0, 0.0, t)
+    passes at ``v_j`` (mm/s), and that travel; with ``cruise_v``, the move cruises at that speed
+    before it brakes."""
+    if cruise_v is None:
+        t = (np.sqrt(v_j * v_j + 2.0 * a * dz) - v_j) / a
+        up = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz,
+                         (0.0, 0.0, 1.0, 0.0), v_j + a * t, v_j + a * t, v_j, a, 0.0, 0.0, t)
+    else:
+        td = (cruise_v - v_j) / a
+        tc = (dz - 0.5 * (cruise_v + v_j) * td) / cruise_v
+        t = tc + td
+        up = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz,
+                         (0.0, 0.0, 1.0, 0.0), cruise_v, cruise_v, v_j, a, 0.0, tc, td)
     travel = PlannedMove(2, 3, "move", t0 + t, (0.0, 0.0, 1.0 + dz, 0.0), (10.0, 0.0, 1.0 + dz, 0.0), 10.0,
                          (1.0, 0.0, 0.0, 0.0), v_j, 100.0, 0.0, 3000.0, 0.03, 0.07, 0.03)
     return up, travel
 
 
-@pytest.mark.parametrize("v_j", [2.739, 5.0])
+@pytest.mark.parametrize("v_j, cruise_v", [(2.739, None), (5.0, None), (5.0, 10.0)])
 @pytest.mark.parametrize("t0", [0.0103, 0.0108, 0.0101, 0.0106, 0.0109])
-def test_a_run_comes_into_a_corner_with_a_last_segment_the_junction_allows(t0, v_j):
+def test_a_run_comes_into_a_corner_with_a_last_segment_the_junction_allows(t0, v_j, cruise_v):
     """The mirror of the corner lead: a run following the plan into a right-angled corner it passes
     at v_j (a z-hop into its travel).  Klipper caps the junction by the segment before it too, at
     sqrt(d a tan(45 deg) / 2), so the segment into the corner is 2 v_j^2 / a long: from the plan's
     point there at the plan's time, or from a sample just before that point; the samples after it
-    go."""
-    up, travel = _corner_up(t0=t0, v_j=v_j)
+    go.  With a cruise before the braking (10 mm/s into a 5 mm/s corner: the braking covers 12.5 um
+    of the 16.7 um segment), the point lies in the cruise."""
+    up, travel = _corner_up(t0=t0, v_j=v_j, cruise_v=cruise_v)
     k = np.arange(0, 40)
     a = int(np.ceil(t0 / DT))  # the move's first sample
     b = int(np.ceil(up.t_end_s / DT))  # samples before the corner: a .. b - 1
