@@ -371,8 +371,16 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 return bound is not None and opts.repair.pin_z_after_hold and z_hop(mv) and bound.z_after_hold(
                     mv, moves)
 
+            def lift_after_move(mv) -> bool:  # a layer change's lift right after a printed line
+                if not (opts.repair.pin_layer_lifts and zlim is not None and z_hop(mv) and zlim.limited(mv)):
+                    return False
+                prev = moves.get(mv.index - 1)
+                return prev is not None and prev.kind == "move" and prev.end_mm[3] > prev.start_mm[3] + 1e-9
+
             def pinned(mv) -> bool:
                 if mv.kind != "move":  # extruder-only move or dwell
+                    return True
+                if lift_after_move(mv):
                     return True
                 return bound is not None and (bound.bound(mv) or (not opts.repair.z_only_hops and hop_pinned(mv)) or (
                     opts.repair.pin_z_before_hold and z_hop(mv) and bound.z_before_hold(mv, moves)
