@@ -80,6 +80,17 @@ class RepairConfig:
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
         acceleration scales above are divided by this (the firmware caps those segments and their
         junctions at ``max_z_accel * d/|dz|``)
+    still_near_steep : the samples where the plan stands still next to a pinned move that
+        ``max_z_accel`` binds (up to twice ``margin_s`` of them) are pinned too: before a pinned lift
+        from rest the free command pre-actuated the lift, and the repair turned that into a dip and
+        rise by 13 um that the firmware ran late (cube_cura after its homing, +0.21 ms on the default
+        profile); after a pinned z move to rest it settled by 8 um in z (relative_extrusion,
+        other_delta, +0.61 ms)
+    pin_layer_lifts : a lift (more z than XY) that ``max_z_accel`` binds right after a printed line
+        (a layer change without a retraction) is pinned: the free command pre-actuated it during the
+        line and turned from XY into z within a few samples, which Klipper's centripetal rule at
+        ``max_z_accel / |u_z|`` takes slower than the command (other_delta: the random files' median
+        drift 0.29 -> 0.20 ms, cube_wipe_prusa +0.37 -> -0.33 ms)
     """
 
     margin_s: float = 0.04
@@ -100,7 +111,7 @@ class RepairConfig:
     lift_xy_accel_factor: float = 100.0
     lead_in_s: float = 0.002
     still_near_steep: bool = True
-    pin_layer_lifts: bool = False
+    pin_layer_lifts: bool = True
 
 
 class PulseResponses:
