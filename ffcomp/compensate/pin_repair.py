@@ -359,9 +359,10 @@ STILL_M_S = 2e-3
 def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin: np.ndarray, J: np.ndarray,
                dt_s: float, z_limit: float) -> np.ndarray | None:
     """The free knots ``z`` (nf, 3) of :func:`repair_window` with the repaired command's nozzle z
-    acceleration within ``z_limit`` (m/s^2) on its free samples (or within what the command had
-    before the repair, where that is more), or None where the unconstrained knots ``z0`` keep it
-    already (or the exact solve gives up).
+    acceleration within ``z_limit`` (m/s^2) on its free samples where the nozzle runs steep (z
+    velocity at least :data:`STEEP_SHARE` of its speed) or nearly stands still (under
+    :data:`STILL_M_S`), or within what the command had there before the repair where that is more;
+    or None where the unconstrained knots ``z0`` keep it already (or the exact solve gives up).
 
     Klipper caps every segment's acceleration at ``max_z_accel * d/|dz|``, so a nozzle that moves
     in z harder than ``max_z_accel`` runs late; the repair's acceleration penalty is soft, and next
@@ -411,7 +412,8 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     (a z-hop right after a retraction: the firmware must run its z as planned, but the command may
     pre-actuate the travel that follows in x and y meanwhile); the correction is then solved in the
     nozzle frame.  ``z_limit_m_s2`` (optional): the firmware's ``max_z_accel``; the repaired command's
-    nozzle z acceleration stays within it on the free samples (:func:`_z_bounded`).
+    nozzle z acceleration stays within it on the free samples where the nozzle runs steep or nearly
+    stands still (:func:`_z_bounded`).
     """
     pin = np.asarray(pin, bool)
     if zpin is not None and np.any(zpin & ~pin):
