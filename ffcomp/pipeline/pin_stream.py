@@ -119,7 +119,10 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         safe = n if final else max(n - M, 0)
         pin_now = buf_pin
         if cfg.still_near_steep and n > 2:
-            pin_now = buf_pin | _still_near(buf_pin & buf_steep, qref, 2 * M)
+            ext = _still_near(buf_pin & buf_steep, qref, 2 * M)
+            if repaired_upto > 0:  # never into a repaired cluster's window (it would merge and be skipped)
+                ext[:repaired_upto + M] = False
+            pin_now = buf_pin | ext
         any_pin = pin_now | buf_zpin
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
             if not any_pin[s0:s1].any():
