@@ -351,3 +351,31 @@ def test_a_pinned_lift_after_homing_starts_from_a_command_standing_still(tmp_pat
 
     assert abs(drift_ms(True)) < 0.1  # +0.013 ms
     assert abs(drift_ms(False)) > 0.15  # the case: +0.214 ms
+
+
+def test_standing_pins_never_reach_a_repaired_cluster(model):
+    """Two steep pinned runs with the plan standing still between them, the second arriving after
+    the first was repaired: the standing samples pinned next to the second
+    (``RepairConfig.still_near_steep``, up to 80 of them) stop short of the first one's window.
+    Grown into it, the two would merge into a cluster that starts before the repaired one's end,
+    which the stream skips as done, and the second run's pins would not hold (this test fails
+    without that guard in ``pin_stream``)."""
+    n = 600
+    q = np.zeros((n, 3)) + 0.2  # the plan stands still throughout ...
+    q[:60] += np.linspace(-1e-3, 0, 60)[:, None]  # ... after a first move
+    c = q + 20e-6 * np.sin(np.arange(n) * 0.05)[:, None] * np.array([1.0, -0.5, -0.5])
+    pin = np.zeros(n, bool)
+    pin[100:140] = pin[290:330] = True
+    xyz = np.zeros((n, 3))
+    xyz[:, 2] = 0.01
+    sizes = [200, 80, 60, 60, 60, 60, 60, 20]  # the first run is repaired, and still held, when the second comes
+
+    def chunks():
+        a = 0
+        for s in sizes:
+            yield c[a:a + s], {"q": q[a:a + s], "xyz": xyz[a:a + s], "k": np.arange(a, a + s)}
+            a += s
+
+    outs = list(pin_repaired(chunks(), lambda meta: pin[meta["k"]], model, DT, steep_fn=lambda meta: pin[meta["k"]]))
+    got = np.concatenate([o[0] for o in outs])
+    assert np.array_equal(got[pin], q[pin])
