@@ -421,6 +421,8 @@ class GcodeWriter:
                 n_tail, pt, k_pt = tail
                 at_ = last[m_] - 1  # the slot of the run's last sample before the corner point
                 lo_ = at_ - n_tail + 1
+                if leads[m_] is not None and offs[m_] + 2 + leads[m_][0] >= lo_:
+                    continue  # a short run that both leaves and enters a corner: its lead alone
                 if pt is not None:  # the first of them moved to the point, the rest dropped
                     P[lo_], K[lo_] = pt, k_pt
                     tail_pts.append(lo_)
