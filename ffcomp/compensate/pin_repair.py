@@ -31,9 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.signal import fftconvolve
+from scipy.sparse import csr_matrix
 
 from ..kinematics import reachable
 from ..model.lpv import LpvModel, state_space
+from .stream import _active_set_qp
 
 #: factorised windows kept by :func:`repair_window` (an LRU cache; about 1 MB each)
 MAX_CACHED_WINDOWS = 256
@@ -370,10 +372,6 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  One small QP
     (:func:`~ffcomp.compensate.stream._active_set_qp`) on the window's normal equations.
     """
-    from scipy.sparse import csr_matrix
-
-    from .stream import _active_set_qp
-
     n, nf = op.S.shape
     # where the firmware's segments run steep or nearly stand still: a flat segment's cap,
     # max_z_accel * d/|dz|, is many times max_z_accel (there the bound cost the printed lines' contour

@@ -16,7 +16,8 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "plan_speeds", "REST_POINT_NEAR_MM",
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "corner_segment_mm", "plan_speeds",
+           "REST_POINT_NEAR_MM",
            "CORNER_LEAD_MAX_MM"]
 
 #: a run's last sample this close to the plan's rest point (mm, as written) takes its place, rather
@@ -84,6 +85,19 @@ CORNER_LEAD_MAX_SAMPLES = 16
 CORNER_LEAD_GAP_MM = 2e-3
 
 
+def corner_segment_mm(u_in, u_out, v_mm_s: float, accel_mm_s2: float) -> float | None:
+    """The length (mm) a segment next to a junction needs for Klipper's centripetal rule,
+    ``v^2 <= d a tan(theta/2) / 2``, to allow ``v_mm_s`` there: ``2 v^2 / (a tan(theta/2))`` for the
+    inner angle ``theta`` between the directions ``u_in`` and ``u_out``, at most
+    :data:`CORNER_LEAD_MAX_MM`; None on a (nearly) straight line (no rule) or under a micrometre."""
+    jc = -float(np.dot(u_in[:3], u_out[:3]))  # Klipper's junction_cos_theta
+    if jc < -0.999:
+        return None
+    tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
+    reach = min(2.0 * v_mm_s * v_mm_s / (accel_mm_s2 * tan_half), CORNER_LEAD_MAX_MM)
+    return reach if reach >= 1e-3 else None
+
+
 def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
                 k_plan: np.ndarray | None, on_plan: np.ndarray | None, lead_pt: np.ndarray | None,
                 prev: PlannedMove | None):
@@ -110,16 +124,12 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
             or k_plan is None or lead_pt is None or k_plan[a] < 0 or mv.start_v_mm_s <= 1e-9
             or mv.accel_mm_s2 <= 0.0):
         return None
-    jc = -float(np.dot(prev.unit[:3], mv.unit[:3]))  # Klipper's junction_cos_theta
-    if jc < -0.999:  # (nearly) straight on: no centripetal rule
-        return None
-    tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
     start = np.array(mv.start_mm[:3], float)
     if np.linalg.norm(np.round(start, 4) - lead_pt) >= 1e-3:
         return None
     v, acc = mv.start_v_mm_s, mv.accel_mm_s2
-    reach = min(2.0 * v * v / (acc * tan_half), CORNER_LEAD_MAX_MM)
-    if reach < 1e-3:
+    reach = corner_segment_mm(prev.unit, mv.unit, v, acc)
+    if reach is None:
         return None
     if np.linalg.norm(X[a] - start) >= reach:
         return None
@@ -168,13 +178,9 @@ def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     if (end is None or mv is None or next_move is None or next_move.kind != MOVE or on_plan is None
             or mv.end_v_mm_s <= 1e-9 or fw_accel_mm_s2 <= 0.0 or mv.accel_mm_s2 <= 0.0):
         return None
-    jc = -float(np.dot(mv.unit[:3], next_move.unit[:3]))
-    if jc < -0.999:
-        return None
-    tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
     v = mv.end_v_mm_s
-    reach = min(2.0 * v * v / (fw_accel_mm_s2 * tan_half), CORNER_LEAD_MAX_MM)
-    if reach < 1e-3:
+    reach = corner_segment_mm(mv.unit, next_move.unit, v, fw_accel_mm_s2)
+    if reach is None:
         return None
     pt, k_end, appended = np.asarray(end[0], float), float(end[1]), int(end[3])
     last = b - 1 if appended else b - 2  # the last sample before the corner point
