@@ -144,6 +144,129 @@ def test_ratio_steps_stay_within_the_extruder_junction_limit():
                                   by_length(e[:m], d[:m], grp[:m], hold[:m]))
 
 
+def _corner_chain(print_first: bool, cruise_s: float, lag_s: float = 0.003, ratio: float = 0.2,
+                  vc: float = 15.0, a: float = 1e4, dt: float = 1e-3):
+    """A compensated command through a 90 degree corner between a travel and a print move at
+    0.2 mm/mm (or the print move first), sampled every ms: from rest to 100 mm/s, braking to ``vc``
+    at the corner, up to 150 mm/s for ``cruise_s`` and back to rest; each segment's extrusion is the
+    reference's over its time, the reference lagging the command by ``lag_s`` (as the plan lags its
+    compensated command).  Returns P0, P1, D, dist, group, de."""
+    v0, v1 = 100.0, 150.0
+    tc = 0.02 + (v0 - vc) / a
+    tk, vk = np.array([(0, 0), (v0 / a, v0), (0.02, v0), (tc, vc), (tc + (v1 - vc) / a, v1),
+                       (tc + cruise_s, v1), (tc + cruise_s + v1 / a, 0)]).T
+    tf = np.linspace(0.0, tk[-1], 400001)
+    vf = np.interp(tf, tk, vk)
+    sf = np.r_[0.0, np.cumsum(0.5 * (vf[1:] + vf[:-1]) * np.diff(tf))]
+    t = np.round(np.arange(0.0, tk[-1] + 1e-12, dt), 9)
+    s = np.interp(t, tf, sf)
+    sc = float(np.interp(tc, tf, sf))
+    P = np.zeros((len(t), 3))
+    P[:, 0], P[:, 1], P[:, 2] = np.minimum(s - sc, 0.0), np.maximum(s - sc, 0.0), 1.0
+    s_ref = np.interp(np.maximum(t - lag_s, 0.0), tf, sf)
+    s_ref[-1] = s[-1]  # (the reference ends where the command does)
+    e_ref = ratio * (np.minimum(s_ref, sc) if print_first else np.maximum(s_ref - sc, 0.0))
+    grp = (t[:-1] >= tc - 1e-9).astype(int)
+    dist = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    return P[:-1], P[1:], np.full(len(dist), dt), dist, grp, np.diff(e_ref)
+
+
+def _firmware_late_ms(lim, P0, P1, D, e) -> float:
+    """Largest lateness (ms, absolute clock) of the chain as Klipper runs it with the feed solve's
+    feeds (an independent re-plan: segment limits, junction rules with the extruder's, lookahead)."""
+    from ffcomp.gcode import feed_solve as fs
+    from ffcomp.gcode.chain_plan import junction_v2, plan_chain, segment_limits
+
+    none = np.zeros(len(D), bool)
+    F = fs.solve_feeds(lim, fs.TimingState(), P0, P1, D, e, none, none, False)
+    d = P1 - P0
+    dist = np.linalg.norm(d, axis=1)
+    vmax, acc = segment_limits(lim, P0, P1, e)
+    jv = np.r_[0.0, junction_v2(lim, d / dist[:, None], e / dist, acc, 2 * dist * acc)]
+    t = plan_chain(dist, np.minimum(F, vmax) ** 2, acc, jv, 0.0, 0.0)[0]
+    return float(np.abs(np.cumsum(t - D)).max()) * 1e3
+
+
+@pytest.mark.parametrize("print_first,cruise_s,lag_s,was_ms,now_ms", [
+    (False, 0.01, 0.003, 1.5, 0.02), (False, 0.02, 0.003, 1.0, 0.02), (False, 0.06, 0.005, 1.2, 0.02),
+    (True, 0.02, 0.005, 0.3, 0.12), (False, 0.12, 0.003, None, None)])
+def test_a_change_of_ratio_goes_onto_the_junction_where_the_firmware_loses_least(profile, print_first, cruise_s,
+                                                                                 lag_s, was_ms, now_ms):
+    """A travel into a short print move (or a print move into a travel) through a corner the
+    compensated command takes at 15 mm/s: the reference-time extrusion ramps the ratio over the
+    segments after the corner while the command speeds up to 150 mm/s, and Klipper caps each of
+    those junctions at ``icv / |diff_r|``.  The writer's ramp (:func:`by_length` with its
+    junction-limited ramp, which gives up on short moves) ran 1.0-1.6 ms late; the ratio now steps
+    once, at the corner, and the chain runs on its clock (judged by the feed solve and an
+    independent re-plan), its total extrusion unchanged.  A long move's ramp already kept the
+    clock: unchanged."""
+    from ffcomp.gcode.chain_plan import ChainLimits, segment_limits
+    from ffcomp.gcode.extrusion import by_length, junction_loss_s, place_ratio_steps
+
+    lim = ChainLimits(profile, 1e5, 100.0)  # (the compensated file's header)
+    P0, P1, D, dist, grp, de = _corner_chain(print_first, cruise_s, lag_s=lag_s)
+    hold = np.zeros(len(D), bool)
+    v = dist / D
+    was = by_length(de, dist, grp, hold, speed_mm_s=v, icv_mm_s=1.0)
+    acc = segment_limits(lim, P0, P1, was)[1]
+    new = place_ratio_steps(was, dist, v, acc, grp, hold, 1.0)
+    assert new.sum() == pytest.approx(de.sum(), rel=1e-12)
+    late_was, late_new = _firmware_late_ms(lim, P0, P1, D, was), _firmware_late_ms(lim, P0, P1, D, new)
+    if was_ms is None:
+        assert late_was < 0.01
+        np.testing.assert_array_equal(new, was)
+        return
+    assert late_was > was_ms and late_new < now_ms, (late_was, late_new)
+    # one step between 0 and the move's ratio (within 10 %), at the corner (the slowest junction);
+    # into the travel a few segments after it where the print move's last segments take up the
+    # reference's extrusion that spills over the corner (their ratio within 10 % then)
+    r = new / dist
+    dr = np.diff(r)
+    corner = int(np.nonzero(grp)[0][0]) - 1
+    big = np.nonzero(np.abs(dr) > 0.1)[0]
+    assert len(big) == 1 and np.all(np.abs(np.delete(dr, big)) <= 0.02 + 1e-12)
+    k = int(big[0])
+    assert k == corner if not print_first else corner <= k <= corner + 5
+    moving = r[: k + 1][r[: k + 1] > 0] if print_first else r[k + 1:]
+    assert np.all(np.abs(moving / 0.2 - 1) <= 0.1 + 1e-12)
+    # at the corner the loss model charges it well under 0.1 ms
+    jv = min(v[k], v[k + 1])
+    assert jv < 60.0
+    if not print_first:
+        assert float(junction_loss_s(jv, 1.0 / abs(dr[k]), min(acc[k], acc[k + 1]))) < 1e-4
+
+
+def test_ratio_steps_stay_put_at_holds_capped_moves_and_short_groups(profile):
+    """Nothing moves where the firmware stops anyway (a hold at the corner), where the extruder's
+    own limits cap the move (a retraction while travelling, extrusion without XY), or where taking
+    up the step's extrusion would change a ratio by more than ``max_shift``."""
+    from ffcomp.gcode.chain_plan import ChainLimits, segment_limits
+    from ffcomp.gcode.extrusion import by_length, place_ratio_steps
+
+    lim = ChainLimits(profile, 1e5, 100.0)
+    P0, P1, D, dist, grp, de = _corner_chain(False, 0.02)
+    n = len(D)
+    v = dist / D
+    hold = np.zeros(n, bool)
+    corner = int(np.nonzero(grp)[0][0])
+    held = hold.copy()
+    held[corner] = True
+    was = by_length(de, dist, grp, held, speed_mm_s=v, icv_mm_s=1.0)
+    acc = segment_limits(lim, P0, P1, was)[1]
+    np.testing.assert_array_equal(place_ratio_steps(was, dist, v, acc, grp, held, 1.0), was)
+    was = by_length(de, dist, grp, hold, speed_mm_s=v, icv_mm_s=1.0)
+    np.testing.assert_array_equal(place_ratio_steps(was, dist, v, acc, grp, hold, 1.0, capped=grp == 1), was)
+    assert not np.array_equal(place_ratio_steps(was, dist, v, acc, grp, hold, 1.0), was)
+    # into a travel the print move's last segments take up the reference's spill over the corner
+    # (by 4-10 % here): not if that may not move their ratio by more than 0.1 %
+    P0, P1, D, dist, grp, de = _corner_chain(True, 0.02, lag_s=0.005)
+    v = dist / D
+    was = by_length(de, dist, grp, hold, speed_mm_s=v, icv_mm_s=1.0)
+    acc = segment_limits(lim, P0, P1, was)[1]
+    assert not np.array_equal(place_ratio_steps(was, dist, v, acc, grp, hold, 1.0), was)
+    np.testing.assert_array_equal(place_ratio_steps(was, dist, v, acc, grp, hold, 1.0, max_shift=1e-3), was)
+
+
 @pytest.mark.parametrize("prof", ["default", "other_delta"])
 def test_high_flow_segments_keep_the_source_ratio_and_the_clock(tmp_path, prof):
     """At 0.11 mm of filament per mm (a 0.8 mm nozzle) Klipper slows a junction to

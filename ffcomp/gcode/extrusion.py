@@ -14,11 +14,19 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "flow_groups", "by_length", "limit_ratio_steps", "extruder_capped"]
+__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "STEP_GAIN", "STEP_BACK_S", "flow_groups", "by_length",
+           "limit_ratio_steps", "place_ratio_steps", "junction_loss_s", "extruder_capped"]
 
 #: after a change of extrusion ratio, segments keep the extrusion of their reference time until its
 #: ratio comes within this share of the group's (see :func:`by_length`)
 EDGE_SHARE = 0.03
+
+#: a group's change of ratio moves onto one junction where that costs the firmware less than this
+#: share of the time the written ramp costs it (:func:`place_ratio_steps`)
+STEP_GAIN = 0.5
+
+#: how far before a group's start that junction may lie (in the previous group's last segments), s
+STEP_BACK_S = 0.008
 
 #: the written ratio changes by at most this share of ``instantaneous_corner_velocity / v`` at a
 #: junction the firmware passes at ``v`` (see :func:`limit_ratio_steps`)
@@ -223,4 +231,140 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
             if np.any(rn * 2.0 * vg[c_] > vmax) or np.any(rn * 2.0 * acc[c_] > amax):
                 continue
         out[g0:g1] = new
+    return out
+
+
+def junction_loss_s(v_mm_s, cap_mm_s, acc_mm_s2):
+    """Time (s) the firmware loses where it must pass a junction at ``cap`` instead of ``v``: it brakes
+    to ``cap`` and accelerates back at ``acc``, ``(v - cap)^2 / (acc v)`` (nothing where ``cap >= v``)."""
+    dv = np.maximum(np.asarray(v_mm_s, float) - cap_mm_s, 0.0)
+    return dv * dv / np.maximum(np.asarray(acc_mm_s2, float) * np.maximum(v_mm_s, 1e-9), 1e-12)
+
+
+def place_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray, acc_mm_s2: np.ndarray,
+                      group: np.ndarray, hold: np.ndarray, icv_mm_s: float, capped: np.ndarray | None = None,
+                      back_s: float = STEP_BACK_S, gain: float = STEP_GAIN, max_shift: float = 0.1) -> np.ndarray:
+    """Each change of extrusion ratio moved onto the one junction where the firmware loses least.
+
+    Klipper passes a junction whose ratios differ by ``diff_r`` at no more than ``icv / |diff_r|``.
+    Where a travel runs into a print move, the source's ratio jumps at the corner, where the plan
+    slows to that limit; the compensated command passes its corner faster and leads the reference
+    by a few milliseconds, so the reference-time extrusion of its first segments ramps the ratio up
+    over several junctions at growing speed (:func:`by_length`'s edge, or
+    :func:`limit_ratio_steps`' ramp), and each of them caps the firmware: the file ran up to 0.8 ms
+    early and then late, 57 um off the command, on a random file on the default profile.  A step
+    costs the firmware about ``(v - cap)^2 / (a v)`` (:func:`junction_loss_s`) at the junction's
+    speed ``v`` (the slower segment's) and acceleration ``a``, so one step where the command runs
+    slowest (near its corner) costs far less than a ramp where it speeds up.
+
+    For every group start that is not at a hold (the firmware stops there: a step costs nothing), the
+    zone from up to ``back_s`` before the start (the previous group's last moving segments) to where
+    the group's ratio settles is given the previous ratio up to one junction and the group's after
+    it, the junction chosen to lose least; the group's extrusion after the zone is scaled so that
+    the total from the zone's start to the group's end is unchanged (into a travel: the previous
+    ratio up to the junction is scaled instead, the travel extrudes nothing).  This replaces the
+    written values only where it loses less than ``gain`` times what they lose, moves no ratio by
+    more than ``max_shift`` (relative), and leaves zones with holds or segments the extruder's own
+    limits cap (``capped``) alone.  The extruded placement moves by at most the zone: the bead
+    starts where the command turns, a few milliseconds before the reference does.
+
+    Parameters
+    ----------
+    e : (n,) extrusion of each segment as it would be written (:func:`by_length`'s), mm
+    dist_mm, speed_mm_s, acc_mm_s2 : (n,) each segment's written length (mm), intended mean speed
+        (mm/s) and the firmware's acceleration on it (mm/s^2, :func:`~ffcomp.gcode.chain_plan.segment_limits`)
+    group, hold : (n,) group ids (non-decreasing, :func:`flow_groups`) and holds
+    icv_mm_s : the firmware's ``instantaneous_corner_velocity``, mm/s
+    capped : (n,) bool, optional; back_s : s; gain, max_shift : see above
+
+    Returns
+    -------
+    ndarray, (n,): the extrusions, mm (the input array where nothing changed)
+    """
+    e = np.asarray(e, float)
+    n = len(e)
+    if n < 3 or icv_mm_s <= 0:
+        return e
+    hold = np.asarray(hold, bool)
+    ok = ~hold & (dist_mm > 1e-9)
+    v = np.where(ok, speed_mm_s, 0.0)
+    dt = np.where(ok, dist_mm / np.maximum(v, 1e-9), 0.0)
+    jv = np.minimum(v[:-1], v[1:])  # junction k: segments k | k + 1 (0 next to a hold: a stop)
+    ja = np.minimum(acc_mm_s2[:-1], acc_mm_s2[1:])
+
+    def f(k, dr):  # loss at junctions k for ratio steps dr
+        return junction_loss_s(jv[k], icv_mm_s / np.maximum(np.abs(dr), 1e-12), ja[k])
+
+    out = e
+    starts = np.nonzero(group[1:] != group[:-1])[0] + 1
+    # what every junction loses as written: transitions that lose nothing are skipped at once
+    r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
+    lost = np.r_[0.0, np.cumsum(f(np.arange(n - 1), np.diff(r)))]
+    changed_upto = -1  # (the losses above are stale below this segment)
+    for g0, g1 in zip(starts.tolist(), np.r_[starts[1:], n].tolist()):
+        if not (ok[g0 - 1] and ok[g0]):
+            continue
+        z0, t = g0, 0.0  # segment z0 - 1 stays as written: moving, of the previous group
+        while z0 >= 2 and ok[z0 - 2] and group[z0 - 2] == group[g0 - 1] and t + dt[z0 - 1] <= back_s:
+            t += dt[z0 - 1]
+            z0 -= 1
+        L = z0 - 1
+        if changed_upto <= L and lost[min(g1, n - 1)] - lost[L] <= 0.0:
+            continue
+        r = np.where(ok, out / np.where(ok, dist_mm, 1.0), 0.0)
+        last = g0 + int(np.nonzero(ok[g0:g1])[0][-1])
+        rb = r[last]
+        tol = 1e-3 * abs(rb) + 1e-9
+        off = np.nonzero(ok[g0:g1] & (np.abs(r[g0:g1] - rb) > tol))[0]
+        z1 = g0 + int(off[-1]) + 1 if off.size else g0
+        if not ok[g0:z1].all() or (capped is not None and capped[z0:g1].any()):
+            continue
+        ra = r[L]
+        if ra == 0.0 and rb == 0.0:
+            continue
+        # candidates m = L .. z1 - 1: segments z0..m at the previous ratio, m + 1.. at the group's
+        m = np.arange(L, z1)
+        d_a = np.r_[0.0, np.cumsum(dist_mm[z0:z1])]  # D_a(m) = d_a[m - L]
+        into_travel = abs(rb) <= 0.01 * abs(ra)  # (what a travel carries is rounding and spill)
+        if not into_travel:
+            okb = ok[z0:g1]
+            T = float(out[z0:g1][okb].sum())
+            D = float(dist_mm[z0:g1][okb].sum())
+            Db = D - d_a
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rb_m = np.where(Db > 1e-9, (T - ra * d_a) / Db, np.nan)
+            ra_m = np.full(len(m), ra)
+            loss = f(m, rb_m - ra)
+            if g1 < n:
+                loss = loss + f(np.full(len(m), g1 - 1), r[g1] - rb_m)
+            okg = ok[g0:g1]
+            r_avg = float(out[g0:g1][okg].sum() / dist_mm[g0:g1][okg].sum())  # the group's own ratio
+            good = np.isfinite(rb_m) & (np.abs(rb_m / r_avg - 1.0) <= max_shift)
+            hi = min(g1, n - 1)
+        else:
+            T = float(out[z0:z1].sum())
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ra_m = np.where(d_a > 1e-9, T / d_a, np.nan)
+            rb_m = np.zeros(len(m))
+            loss = f(np.full(len(m), L), ra_m - ra) + f(m, ra_m)
+            good = np.isfinite(ra_m) & (np.abs(ra_m / ra - 1.0) <= max_shift)
+            hi = z1
+        if not good.any():
+            continue
+        cur = float(np.sum(f(np.arange(L, hi), np.diff(r[L:hi + 1]))))
+        # (near-ties go to the junction nearest the group's start: the source's own corner)
+        q = int(np.argmin(np.where(good, loss * (1.0 + 0.02 * np.abs(m - (g0 - 1))), np.inf)))
+        if not loss[q] < gain * cur:
+            continue
+        mq = int(m[q])
+        new = out.copy()
+        new[z0:mq + 1] = ra_m[q] * dist_mm[z0:mq + 1]
+        if not into_travel:
+            sel = np.arange(mq + 1, g1)
+            sel = sel[ok[sel]]
+            new[sel] = rb_m[q] * dist_mm[sel]
+        else:
+            new[mq + 1:z1] = 0.0
+        out = new
+        changed_upto = g1
     return out

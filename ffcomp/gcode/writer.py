@@ -43,7 +43,7 @@ import numpy as np
 
 from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, segment_limits
-from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups  # noqa: F401 (EDGE_SHARE: re-exported)
+from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
@@ -181,6 +181,9 @@ class GcodeWriter:
         #: the points placed between forced ones take the least-squares values of the samples they
         #: stand for (:mod:`ffcomp.gcode.knot_fit`) instead of the samples' own
         self.fit_points = fit_points
+        #: each change of extrusion ratio written on the junction where the firmware loses least
+        #: (:func:`~ffcomp.gcode.extrusion.place_ratio_steps`; Klipper's feed solve only)
+        self.place_steps = True
 
     def _w(self, text: str) -> None:
         self._write(text)
@@ -506,13 +509,15 @@ class GcodeWriter:
                 micro |= new
                 Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last, force=micro)
             self.stats.micro_holds += int(micro.sum())
-        de = self._extrusion(ch, by_length(Ef[j] - Ef[i], dist, flow_groups([runs[q].move for q in run_ids])[srun],
-                                           hold, speed_mm_s=dist / dt,
-                                           icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None,
-                                           capped=np.array([extruder_capped(runs[q].move) for q in run_ids])[srun],
-                                           e_limits=None if self.chain is None else
-                                           (self.chain.max_e_velocity, self.chain.max_e_accel)),
-                             run_ids[srun], ext_de, ext_runs)
+        groups = flow_groups([runs[q].move for q in run_ids])[srun]
+        capped = np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]
+        de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt,
+                       icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
+                       e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel))
+        if self.chain is not None and self.place_steps:  # each change of ratio on its cheapest junction
+            de = place_ratio_steps(de, dist, dist / dt, segment_limits(self.chain, Pr[i], Pr[j], de)[1], groups,
+                                   hold, self.chain.instant_corner_v, capped=capped)
+        de = self._extrusion(ch, de, run_ids[srun], ext_de, ext_runs)
         stop_first = first_seg & follows_hold[run_ids[srun]]
         if self.chain is not None:
             # a run that leaves rest on the plan's time a sample or more after the writer's last point
