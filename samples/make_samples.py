@@ -800,6 +800,14 @@ PRUSA_JOBS = {
         )
         + ["--layer-gcode", "G92 E0"],
     ),
+    # spiral vase (deltas' classic): one perimeter whose z rises all along every layer, no retraction
+    "vase_prusa": (
+        "cylinder40x30",
+        _opts(
+            "--layer-height 0.3 --first-layer-height 0.3 --perimeters 1 --top-solid-layers 0"
+            " --bottom-solid-layers 3 --fill-density 0% --spiral-vase"
+        ),
+    ),
 }
 PRUSA_PLATE_ARGS = _opts(
     "--layer-height 0.3 --first-layer-height 0.3 --perimeters 2 --top-solid-layers 4"
