@@ -55,6 +55,36 @@ def test_repair_holds_the_pins_and_beats_a_cut(model):
     assert np.allclose(same, q, atol=1e-12)
 
 
+def test_printed_samples_weigh_more_in_the_repair(model):
+    """The repair of a correction cut by a hold, with the samples before the hold printing: weighted
+    ``print_weight`` times there, the model's response on the printed samples (what marks the part)
+    falls, the response elsewhere (the hold and after it) rises, and the pins still hold.  Weight 1
+    is the unweighted repair, to the last bit."""
+    H = PulseResponses(model, DT).at(np.array([0.0, 0.0, 0.01]))
+    n = 200
+    t = np.arange(n) * DT
+    q = np.zeros((n, 3)) + 0.25
+    dev = 20e-6 * np.exp(-((t - 0.1) / 0.01) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+    c = q + dev
+    pin = np.zeros(n, bool)
+    pin[95:130] = True
+    printing = np.zeros(n, bool)
+    printing[:95] = True
+    J = jacobian(model.geometry, np.array([0.0, 0.0, 0.01]))
+
+    def errors(cfg, pr):
+        out = repair_window(H, c, q, pin, J, DT, cfg, printing=pr)
+        assert np.array_equal(out[pin], q[pin])
+        e = np.linalg.norm(_response(H, out - c), axis=1)
+        return out, float(np.sqrt(np.mean(e[:95] ** 2))), float(np.sqrt(np.mean(e[95:n] ** 2)))
+
+    plain, p0, r0 = errors(RepairConfig(), None)
+    same, _, _ = errors(RepairConfig(print_weight=1.0), printing)
+    np.testing.assert_array_equal(same, plain)
+    _, p3, r3 = errors(RepairConfig(print_weight=3.0), printing)
+    assert p3 < 0.7 * p0 and r3 > r0
+
+
 def test_stream_keeps_chunks_and_order(model):
     """Chunks come out with their lengths and order; repaired rows equal an all-at-once repair."""
     rng = np.random.default_rng(1)

@@ -141,9 +141,15 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
                 steep = bool(np.any(buf_steep[w0:w1] & ~any_pin[w0:w1]))
+                printing = None
+                if cfg.print_weight != 1.0 and "e" in buf_meta:  # the plan extrudes while it moves in XY
+                    e_w, x_w = buf_meta["e"][w0:w1], buf_meta["xyz"][w0:w1, :2]
+                    seg = (np.diff(e_w) > 1e-9) & (np.max(np.abs(np.diff(x_w, axis=0)), axis=1) > 1e-12)
+                    printing = np.r_[seg, seg[-1:]] if seg.size else np.zeros(w1 - w0, bool)
                 new = repair_window(responses.at(pose), old, qtgt[w0:w1], pin_now[w0:w1], J, dt_s,
                                     cfg_steep if steep else cfg, cache=ops, key=(key, steep),
-                                    zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2)
+                                    zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2,
+                                    printing=printing)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(any_pin[a:b].sum())
