@@ -619,9 +619,12 @@ def test_a_z_hop_travel_meets_its_pinned_move_down_on_the_clock(tmp_path, monkey
                             CompensateOptions(predict=False, repair=RepairConfig(**repair), self_check_drift_ms=1e9))
         return s.self_check_drift_ms
 
-    assert abs(drift_ms()) < 0.2  # -0.15 ms (+0.16 before plan_clock.corner_tail)
+    # (the repair's weight on printed samples, 2 by default, moves the change into the lift and the
+    # travel and costs this file's clock 0.08 ms: the mechanism is measured without it)
+    assert abs(drift_ms(print_weight=1.0)) < 0.2  # -0.15 ms (+0.16 before plan_clock.corner_tail)
+    assert abs(drift_ms()) < 0.3  # -0.23 ms
     monkeypatch.setattr(plan_clock, "CORNER_LEAD_MAX_MM", 0.0)
-    assert abs(drift_ms(lead_in_s=0.0)) > 0.5  # the case: -0.63 ms
+    assert abs(drift_ms(lead_in_s=0.0, print_weight=1.0)) > 0.5  # the case: -0.63 ms
 
 
 def test_a_pinned_z_hop_runs_into_its_travel_on_the_clock(tmp_path, monkeypatch):
