@@ -263,8 +263,7 @@ class _Operator:
     __slots__ = ("S", "F", "Phi", "keep", "D2S", "wrow", "P", "factor", "nf", "W")
 
 
-def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: RepairConfig,
-              printing: np.ndarray | None = None) -> _Operator:
+def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: RepairConfig) -> _Operator:
     op = _Operator()
     op.W = None
     n = len(pin)
@@ -282,13 +281,6 @@ def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: R
     for i in range(3):
         for j in range(3):
             Phi[i * rows:(i + 1) * rows, j * nf:(j + 1) * nf] = R[3 * i + j]
-    if printing is not None and cfg.print_weight != 1.0 and printing.any():
-        # the response on the samples where the plan prints counts print_weight times (it marks the part)
-        w = np.ones(rows)
-        inside = op.keep < n
-        w[inside] = np.where(printing[op.keep[inside]], cfg.print_weight, 1.0)
-        op.W = np.tile(w, 3)
-        Phi = Phi * op.W[:, None]
     op.Phi = Phi
     # nozzle acceleration of the correction (second difference, zeros beyond the window), weighted
     # per axis: P = J^T W J / dt^4 ...
@@ -303,6 +295,24 @@ def _operator(H: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float, cfg: R
     G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
     op.factor = cho_factor(G, lower=True, check_finite=False)
     return op
+
+
+def _weighted(op: _Operator, printing: np.ndarray, cfg: RepairConfig) -> _Operator:
+    """``op`` with the response on the samples where the plan prints (``printing``, the window's
+    samples) counting ``cfg.print_weight`` times: the same parts, the weights and their factor."""
+    n = len(printing)
+    rows = len(op.keep)
+    w = np.ones(rows)
+    inside = op.keep < n
+    w[inside] = np.where(printing[op.keep[inside]], cfg.print_weight, 1.0)
+    out = _Operator()
+    for k in ("S", "F", "Phi", "keep", "D2S", "wrow", "P", "nf"):
+        setattr(out, k, getattr(op, k))
+    out.W = np.tile(w * w, 3)  # (squared: the normal equations' row weights)
+    G = (op.Phi.T * out.W) @ op.Phi / cfg.err_m**2 + np.kron(op.P, op.D2S.T @ op.D2S)
+    G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-30)
+    out.factor = cho_factor(G, lower=True, check_finite=False)
+    return out
 
 
 class _FrameOperator:
@@ -439,16 +449,19 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
         out = _repair_frames(fop, c, q, pins, J, cfg)
         out[pin] = q[pin]
         return out
+    pk = (key, len(pin), np.packbits(pin).tobytes())
+    op = _cached(cache, pk, lambda: _operator(H, pin, J, dt_s, cfg))
     pr = None if printing is None or cfg.print_weight == 1.0 else np.asarray(printing, bool)
-    op = _cached(cache, (key, len(pin), np.packbits(pin).tobytes(), None if pr is None else np.packbits(pr).tobytes()),
-                 lambda: _operator(H, pin, J, dt_s, cfg, pr))
+    if pr is not None and pr.any() and op.nf:  # (its weights and factor only: the responses are op's)
+        base = op
+        op = _cached(cache, pk + (np.packbits(pr).tobytes(),), lambda: _weighted(base, pr, cfg))
     fixed = np.where(pin[:, None], q - c, 0.0)
     o = op.F @ fixed  # (n, 3): the pinned values, ramps towards the free knots excluded (they are in S)
     if op.nf == 0:
         return c + o
     Yo = np.stack([sum(np.convolve(H[:, i, j], o[:, j]) for j in range(3)) for i in range(3)], 1)[op.keep]
     D2o = _second_difference(o) * op.wrow
-    yo = Yo.T.reshape(-1) if op.W is None else Yo.T.reshape(-1) * op.W
+    yo = Yo.T.reshape(-1) if op.W is None else Yo.T.reshape(-1) * op.W  # (W: the squared weights)
     rhs = -(op.Phi.T @ yo) / cfg.err_m**2 - (op.D2S.T @ D2o @ op.P.T).T.reshape(-1)
     z = cho_solve(op.factor, rhs, check_finite=False).reshape(3, op.nf).T
     if z_limit_m_s2 is not None:
