@@ -31,19 +31,23 @@ def _response(H, u):
     return np.stack([sum(np.convolve(H[:, i, j], u[:, j]) for j in range(3)) for i in range(3)], 1)
 
 
+def _hold_window(model, n: int = 200):
+    """A smooth 20 um correction (centred at 0.1 s) through a hold pinned on samples 95-129, at the
+    bed centre: the pulse responses, plan, command, pins and Jacobian."""
+    H = PulseResponses(model, DT).at(np.array([0.0, 0.0, 0.01]))
+    t = np.arange(n) * DT
+    q = np.zeros((n, 3)) + 0.25
+    c = q + 20e-6 * np.exp(-((t - 0.1) / 0.01) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+    pin = np.zeros(n, bool)
+    pin[95:130] = True
+    return H, q, c, pin, jacobian(model.geometry, np.array([0.0, 0.0, 0.01]))
+
+
 def test_repair_holds_the_pins_and_beats_a_cut(model):
     """A smooth correction that runs through a hold: cut at the hold it rings; repaired, the pins hold
     exactly, nothing changes outside the window, and the model's response to the change is several
     times smaller than the cut's."""
-    H = PulseResponses(model, DT).at(np.array([0.0, 0.0, 0.01]))
-    n = 200
-    t = np.arange(n) * DT
-    q = np.zeros((n, 3)) + 0.25
-    dev = 20e-6 * np.exp(-((t - 0.1) / 0.01) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
-    c = q + dev
-    pin = np.zeros(n, bool)
-    pin[95:130] = True
-    J = jacobian(model.geometry, np.array([0.0, 0.0, 0.01]))
+    H, q, c, pin, J = _hold_window(model)
     out = repair_window(H, c, q, pin, J, DT, RepairConfig())
     assert np.array_equal(out[pin], q[pin])
     cut = np.where(pin[:, None], q, c)
@@ -60,17 +64,10 @@ def test_printed_samples_weigh_more_in_the_repair(model):
     ``print_weight`` times there, the model's response on the printed samples (what marks the part)
     falls, the response elsewhere (the hold and after it) rises, and the pins still hold.  Weight 1
     is the unweighted repair, to the last bit."""
-    H = PulseResponses(model, DT).at(np.array([0.0, 0.0, 0.01]))
     n = 200
-    t = np.arange(n) * DT
-    q = np.zeros((n, 3)) + 0.25
-    dev = 20e-6 * np.exp(-((t - 0.1) / 0.01) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
-    c = q + dev
-    pin = np.zeros(n, bool)
-    pin[95:130] = True
+    H, q, c, pin, J = _hold_window(model, n)
     printing = np.zeros(n, bool)
     printing[:95] = True
-    J = jacobian(model.geometry, np.array([0.0, 0.0, 0.01]))
 
     def errors(cfg, pr):
         out = repair_window(H, c, q, pin, J, DT, cfg, printing=pr)
