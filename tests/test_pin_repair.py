@@ -82,6 +82,46 @@ def test_printed_samples_weigh_more_in_the_repair(model):
     assert p3 < 0.7 * p0 and r3 > r0
 
 
+def test_the_print_weight_keeps_the_nozzle_out_of_the_line_before_a_lift(tmp_path):
+    """A 20 mm square printed in three layers on other_delta, each layer change a lift straight after
+    the printed line (no retraction) and pinned to the plan: unweighted, the repair reshaped the
+    line's end to shorten the lift's lag, and on the held-out truth plant the nozzle dipped 23-29 um
+    below the line in the last 15 ms before each lift.  With the printed samples counting twice
+    (the default) it stays within 11 um there, and the printed samples' z error falls overall."""
+    import dataclasses
+    from pathlib import Path
+
+    from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
+    from ffcomp.pipeline.sim_flow import simulate_gcode
+    from ffcomp.profile import load_profile
+
+    root = Path(__file__).resolve().parents[1] / "samples" / "profiles"
+    lines = ["G90", "M83", "G28", "G1 X10 Y10 Z0.3 F6000", "M204 S3000"]
+    for layer in range(3):
+        lines += [f"G1 X{x} Y{y} E0.8 F3600" for x, y in ((-10, 10), (-10, -10), (10, -10), (10, 10))]
+        lines.append(f"G1 Z{0.3 * (layer + 2):.1f} F12000")
+    src = tmp_path / "sq.gcode"
+    src.write_text("\n".join(lines) + "\n")
+    truth = load_profile(root / "other_delta_truth.toml")
+
+    def dips(weight: float) -> tuple[float, float]:
+        out = tmp_path / f"o{weight}.gcode"
+        opts = dataclasses.replace(CompensateOptions(predict=False), repair=RepairConfig(print_weight=weight))
+        compensate_file(str(src), str(out), load_profile(root / "other_delta.toml"), opts)
+        rep = simulate_gcode(truth, str(src), compare=str(out))
+        dz = rep.runs[-1].err_lag_m[:, 2]
+        e = rep.reference.e_mm[:len(dz)]
+        printing = np.r_[np.diff(e) > 1e-9, False]
+        ends = np.nonzero(printing[:-1] & ~printing[1:])[0]
+        assert len(ends) == 3
+        return (min(float(dz[k - 15:k + 1].min()) for k in ends), float(np.sqrt(np.mean(dz[printing] ** 2))))
+
+    dip1, rms1 = dips(1.0)
+    dip2, rms2 = dips(RepairConfig().print_weight)
+    assert dip1 < -20e-6  # the case: -29 um
+    assert dip2 > -15e-6 and rms2 < 0.85 * rms1  # -10.7 um; 3.73 -> 2.85 um RMS
+
+
 def test_stream_keeps_chunks_and_order(model):
     """Chunks come out with their lengths and order; repaired rows equal an all-at-once repair."""
     rng = np.random.default_rng(1)
