@@ -379,6 +379,42 @@ def test_the_repair_keeps_the_nozzle_z_acceleration_within_the_firmware_limit(mo
     assert e["loose"] <= e["tight"] < 0.6 * e["cut"]
 
 
+def test_the_repair_keeps_a_steep_moves_turns_within_the_firmware_limit(model):
+    """On a steep move (the nozzle descending at 100 mm/s) the repair of an x/y correction cut by
+    pins bent the command sideways harder than Klipper's centripetal junction rule allows there
+    (``max_z_accel / |u_z|``: a random file's descent after homing ran 0.55 ms late, 62 um off the
+    clock).  With ``z_limit_m_s2`` the repaired command's nozzle x and y accelerations on the free
+    samples stay within the limit over ``|u_z|`` (or what the command had there before), the pins
+    hold, and a limit that does not bind changes nothing."""
+    pose = np.array([0.0, 0.0, 0.01])
+    H = PulseResponses(model, DT).at(pose)
+    J = jacobian(model.geometry, pose)
+    n = 200
+    t = np.arange(n) * DT
+    q = 0.25 - 0.1 * t[:, None] * np.ones(3)  # the three carriages down together: z at ~100 mm/s
+    c = q + 20e-6 * np.exp(-((t - 0.1) / 0.006) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+    pin = np.zeros(n, bool)
+    pin[100:140] = True
+    free = ~pin[1:-1]
+
+    def acc(x, k):
+        return (np.diff(x, 2, axis=0) @ J[k]) / DT**2
+
+    cfg = RepairConfig()
+    loose = repair_window(H, c, q, pin, J, DT, cfg)
+    peak = max(float(np.max(np.abs(acc(loose, k)[free]))) for k in (0, 1))
+    limit = 0.3 * peak
+    tight = repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=limit)
+    assert np.array_equal(tight[pin], q[pin])
+    v = np.gradient(tight, axis=0) @ J.T / DT
+    cap = limit * np.linalg.norm(v, axis=1)[1:-1] / np.abs(v[1:-1, 2])
+    for k in (0, 1):
+        own = np.abs(acc(c, k))
+        assert np.all(np.abs(acc(tight, k))[free] <= np.maximum(cap, own * 1.0001)[free] * 1.05)
+    assert float(np.max(np.abs(acc(loose, 0)[free]) - np.maximum(cap, np.abs(acc(c, 0)))[free])) > 0  # the case
+    np.testing.assert_allclose(repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=10 * peak), loose, atol=1e-15)
+
+
 def test_the_plan_standing_still_next_to_a_steep_pin_is_pinned_too():
     """``pin_stream._still_near``: the samples where the plan stands still that adjoin a seed
     through standing samples only, at most ``reach`` away; never across a moving sample."""

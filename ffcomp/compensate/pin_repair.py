@@ -395,7 +395,10 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     Klipper caps every segment's acceleration at ``max_z_accel * d/|dz|``, so a nozzle that moves
     in z harder than ``max_z_accel`` runs late; the repair's acceleration penalty is soft, and next
     to a pinned z move (the lift after homing, a layer change's) the corrected command dipped and
-    rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  One small QP
+    rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  On the steep samples that move,
+    the nozzle's x and y accelerations stay within ``z_limit / |u_z|`` as well (Klipper's centripetal
+    junction rule across such a move: a correction bent a 150 mm/s descent sideways and the firmware
+    ran it 0.55 ms late, 62 um off the clock).  One small QP
     (:func:`~ffcomp.compensate.stream._active_set_qp`) on the window's normal equations.
     """
     n, nf = op.S.shape
@@ -415,6 +418,16 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     A = np.hstack([jz[j] * D2 for j in range(3)])  # (R, 3 nf), z carriage-major
     zvec0 = z0.T.reshape(-1)
     lim = np.maximum(z_limit, np.abs(c2 @ jz) * 1.0001)
+    mv = sp[rows] >= STILL_M_S
+    if mv.any():
+        # across a steep move (its x and y): Klipper's centripetal junction rule at max_z_accel / |u_z|
+        a_seg = np.minimum(z_limit * sp[rows][mv] / np.abs(v[rows][mv, 2]), 1000.0)
+        D2m, c2m, o2m = D2[mv], c2[mv], _second_difference(o)[rows][mv]
+        for k in (0, 1):
+            jk = J[k] / dt_s**2
+            A = np.vstack([A, np.hstack([jk[j] * D2m for j in range(3)])])
+            base = np.r_[base, (c2m + o2m) @ jk]
+            lim = np.r_[lim, np.maximum(a_seg, np.abs(c2m @ jk) * 1.0001)]
     v = A @ zvec0 + base
     if np.all(np.abs(v) <= lim * 1.02):
         return None
