@@ -411,23 +411,24 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     rows = np.nonzero(~pin[1:-1] & steep[1:-1])[0] + 1
     if n < 3 or not rows.size:
         return None
-    jz = J[2] / dt_s**2
     c2 = np.diff(c, 2, axis=0)[rows - 1]  # the command's own second difference
-    base = (c2 + _second_difference(o)[rows]) @ jz
+    acc0 = c2 + _second_difference(o)[rows]  # the repaired command's before the free knots' part
     D2 = _second_difference(op.S)[rows]
-    A = np.hstack([jz[j] * D2 for j in range(3)])  # (R, 3 nf), z carriage-major
+    # z on every such sample; x and y on those that move (across a steep move: Klipper's centripetal
+    # junction rule at max_z_accel / |u_z|)
+    moving = sp[rows] >= STILL_M_S
+    parts = [(2, np.ones(len(rows), bool), np.full(len(rows), z_limit))]
+    if moving.any():
+        a_seg = np.minimum(z_limit * sp[rows] / np.maximum(np.abs(v[rows, 2]), 1e-12), 1000.0)
+        parts += [(k, moving, a_seg) for k in (0, 1)]
+    A, base, lim = [], [], []
+    for k, sel, cap in parts:
+        jk = J[k] / dt_s**2
+        A.append(np.hstack([jk[j] * D2[sel] for j in range(3)]))  # (R, 3 nf), carriage-major
+        base.append(acc0[sel] @ jk)
+        lim.append(np.maximum(cap[sel], np.abs(c2[sel] @ jk) * 1.0001))
+    A, base, lim = np.vstack(A), np.concatenate(base), np.concatenate(lim)
     zvec0 = z0.T.reshape(-1)
-    lim = np.maximum(z_limit, np.abs(c2 @ jz) * 1.0001)
-    mv = sp[rows] >= STILL_M_S
-    if mv.any():
-        # across a steep move (its x and y): Klipper's centripetal junction rule at max_z_accel / |u_z|
-        a_seg = np.minimum(z_limit * sp[rows][mv] / np.abs(v[rows][mv, 2]), 1000.0)
-        D2m, c2m, o2m = D2[mv], c2[mv], _second_difference(o)[rows][mv]
-        for k in (0, 1):
-            jk = J[k] / dt_s**2
-            A = np.vstack([A, np.hstack([jk[j] * D2m for j in range(3)])])
-            base = np.r_[base, (c2m + o2m) @ jk]
-            lim = np.r_[lim, np.maximum(a_seg, np.abs(c2m @ jk) * 1.0001)]
     v = A @ zvec0 + base
     if np.all(np.abs(v) <= lim * 1.02):
         return None

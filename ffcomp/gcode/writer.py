@@ -514,7 +514,8 @@ class GcodeWriter:
         de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt,
                        icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
                        e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel))
-        if self.chain is not None and self.place_steps:  # each change of ratio on its cheapest junction
+        if self.chain is not None and self.place_steps and bool(np.any(groups[1:] != groups[:-1])):
+            # each change of ratio on its cheapest junction (a chunk without one has nothing to place)
             de = place_ratio_steps(de, dist, dist / dt, segment_limits(self.chain, Pr[i], Pr[j], de)[1], groups,
                                    hold, self.chain.instant_corner_v, capped=capped)
         de = self._extrusion(ch, de, run_ids[srun], ext_de, ext_runs)
