@@ -382,6 +382,9 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
 #: its speed, or its speed below ``STILL_M_S`` (m/s)
 STEEP_SHARE = 0.3
 STILL_M_S = 2e-3
+#: :func:`_z_bounded` keeps each of x and y within this share of the centripetal cap
+#: ``max_z_accel / |u_z|`` (the rule bounds their vector sum)
+XY_SHARE = float(np.sqrt(0.5))
 
 
 def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin: np.ndarray, J: np.ndarray,
@@ -398,7 +401,11 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  On the steep samples that move,
     the nozzle's x and y accelerations stay within ``z_limit / |u_z|`` as well (Klipper's centripetal
     junction rule across such a move: a correction bent a 150 mm/s descent sideways and the firmware
-    ran it 0.55 ms late, 62 um off the clock).  One small QP
+    ran it 0.55 ms late, 62 um off the clock), each within ``1/sqrt(2)`` of it (:data:`XY_SHARE`; the
+    rule bounds the vector).  The rows cover the pinned samples next to free ones too: their second
+    difference moves with the free knots, and there the command turns into a pinned lift (a layer
+    change after a printed line on ``cube_prusa.gcode``, other_delta: the command came into the lift
+    at 7,500 mm/s^2 in x/y where the cap was 5,000, and Klipper ran it 0.5 ms off the clock).  One small QP
     (:func:`~ffcomp.compensate.stream._active_set_qp`) on the window's normal equations.
     """
     n, nf = op.S.shape
@@ -408,7 +415,10 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     v = np.gradient(c + o + op.S @ z0, axis=0) @ J.T / dt_s  # the unbounded repair's nozzle velocity
     sp = np.linalg.norm(v, axis=1)
     steep = (np.abs(v[:, 2]) >= STEEP_SHARE * sp) | (sp < STILL_M_S)
-    rows = np.nonzero(~pin[1:-1] & steep[1:-1])[0] + 1
+    # every sample whose second difference moves with the free knots: the free ones and the pinned
+    # ones next to them (the command's turn into a pinned lift happens there)
+    touched = ~pin[1:-1] | ~pin[:-2] | ~pin[2:]
+    rows = np.nonzero(touched & steep[1:-1])[0] + 1
     if n < 3 or not rows.size:
         return None
     c2 = np.diff(c, 2, axis=0)[rows - 1]  # the command's own second difference
@@ -419,7 +429,8 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     moving = sp[rows] >= STILL_M_S
     parts = [(2, np.ones(len(rows), bool), np.full(len(rows), z_limit))]
     if moving.any():
-        a_seg = np.minimum(z_limit * sp[rows] / np.maximum(np.abs(v[rows, 2]), 1e-12), 1000.0)
+        # the rule bounds the vector (x, y) acceleration: each component within 1/sqrt(2) of the cap
+        a_seg = XY_SHARE * np.minimum(z_limit * sp[rows] / np.maximum(np.abs(v[rows, 2]), 1e-12), 1000.0)
         parts += [(k, moving, a_seg) for k in (0, 1)]
     A, base, lim = [], [], []
     for k, sel, cap in parts:

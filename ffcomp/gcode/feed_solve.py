@@ -12,7 +12,8 @@ recovered as soon as the limits allow.  The chain's last segments stay open (the
 depends on the next chunk): they are re-planned, feeds fixed, together with the next chunk.
 
 Where those rounds leave the chain off the clock at speed, a joint solve follows (:func:`_refine`:
-Gauss-Newton on all the feeds at once).  Its cost weighs each segment end's lateness by the speed
+Gauss-Newton on all the feeds at once; where only a stretch of a long chain is off, on the feeds
+around it).  Its cost weighs each segment end's lateness by the speed
 there (:func:`clock_weights`): lateness times speed is the distance from the intended command at
 the same instant, so a millisecond spent where the command nearly stands still (the apex of a z
 reversal at ``max_z_accel``, which the firmware must take slower than the command does) is left
@@ -61,6 +62,12 @@ STOP_FAST_SHARE = 0.85
 #: chains of at most ``REFINE_DENSE`` free segments are solved densely, longer ones by LSQR
 REFINE_ITERS = 4
 REFINE_MIN_MM = 2e-3
+#: where the chain's RMS stays below ``REFINE_MIN_MM`` but a segment end is more than
+#: ``REFINE_PEAK_MM`` off (lateness times speed, mm), the refinement frees only the feeds within
+#: ``REFINE_LOCAL`` segments of such ends (one stretch off the clock in a long chain: a corner into
+#: a lift at ``max_z_accel``, which the RMS of the chain dilutes)
+REFINE_PEAK_MM = 1e-3
+REFINE_LOCAL = 24
 REFINE_V0 = 10.0
 REFINE_BAND = 12
 REFINE_DENSE = 600
@@ -262,8 +269,13 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         best, best_cost, best_plan = FC, cost(pC[0]), pC
     if REFINE_ITERS and free.any():
         w = clock_weights(dist, D)
-        if float(np.sqrt(np.mean((w * (late0 + np.cumsum(best_plan[0] - D))) ** 2))) > REFINE_MIN_MM:
-            best, best_plan = _refine(plan, best, best_plan, free, D, late0, np.minimum(Fmax, vmax), w)
+        off = np.abs(w * (late0 + np.cumsum(best_plan[0] - D)))
+        fr = free
+        if float(np.sqrt(np.mean(off**2))) <= REFINE_MIN_MM:
+            near = np.convolve(off > REFINE_PEAK_MM, np.ones(2 * REFINE_LOCAL + 1))[REFINE_LOCAL:REFINE_LOCAL + len(off)]
+            fr = free & (near > 0)
+        if fr.any():
+            best, best_plan = _refine(plan, best, best_plan, fr, D, late0, np.minimum(Fmax, vmax), w)
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
 
