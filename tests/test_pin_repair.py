@@ -5,7 +5,7 @@ simulator through the written G-code)."""
 import numpy as np
 import pytest
 
-from ffcomp.compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
+from ffcomp.compensate.pin_repair import XY_SHARE, PulseResponses, RepairConfig, pinned_clusters, repair_window
 from ffcomp.kinematics import jacobian
 from ffcomp.model.lpv import LpvModel
 from ffcomp.pipeline.pin_stream import PinStats, pin_repaired
@@ -384,15 +384,17 @@ def test_the_repair_keeps_a_steep_moves_turns_within_the_firmware_limit(model):
     pins bent the command sideways harder than Klipper's centripetal junction rule allows there
     (``max_z_accel / |u_z|``: a random file's descent after homing ran 0.55 ms late, 62 um off the
     clock).  With ``z_limit_m_s2`` the repaired command's nozzle x and y accelerations on the free
-    samples stay within the limit over ``|u_z|`` (or what the command had there before), the pins
-    hold, and a limit that does not bind changes nothing."""
+    samples and the pinned ones next to them (the turn into a pinned lift: a layer change on
+    ``cube_prusa.gcode``, other_delta, ran 0.5 ms off the clock there) stay within ``1/sqrt(2)`` of the
+    limit over ``|u_z|`` (or what the command had there before), the pins hold, and a limit that does
+    not bind changes nothing."""
     pose = np.array([0.0, 0.0, 0.01])
     H = PulseResponses(model, DT).at(pose)
     J = jacobian(model.geometry, pose)
     n = 200
     t = np.arange(n) * DT
     q = 0.25 - 0.1 * t[:, None] * np.ones(3)  # the three carriages down together: z at ~100 mm/s
-    c = q + 20e-6 * np.exp(-((t - 0.1) / 0.006) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+    c = q + 20e-6 * np.exp(-((t - 0.095) / 0.006) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
     pin = np.zeros(n, bool)
     pin[100:140] = True
     free = ~pin[1:-1]
@@ -400,6 +402,10 @@ def test_the_repair_keeps_a_steep_moves_turns_within_the_firmware_limit(model):
     def acc(x, k):
         return (np.diff(x, 2, axis=0) @ J[k]) / DT**2
 
+    # the rows: the free samples and the pinned ones next to them (their second difference moves
+    # with the free knots: the turn into a pinned move)
+    rows = free | ~pin[:-2] | ~pin[2:]
+    assert (rows & ~free).sum() == 2
     cfg = RepairConfig()
     loose = repair_window(H, c, q, pin, J, DT, cfg)
     peak = max(float(np.max(np.abs(acc(loose, k)[free]))) for k in (0, 1))
@@ -407,11 +413,13 @@ def test_the_repair_keeps_a_steep_moves_turns_within_the_firmware_limit(model):
     tight = repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=limit)
     assert np.array_equal(tight[pin], q[pin])
     v = np.gradient(tight, axis=0) @ J.T / DT
-    cap = limit * np.linalg.norm(v, axis=1)[1:-1] / np.abs(v[1:-1, 2])
+    cap = XY_SHARE * limit * np.linalg.norm(v, axis=1)[1:-1] / np.abs(v[1:-1, 2])
     for k in (0, 1):
         own = np.abs(acc(c, k))
-        assert np.all(np.abs(acc(tight, k))[free] <= np.maximum(cap, own * 1.0001)[free] * 1.05)
+        assert np.all(np.abs(acc(tight, k))[rows] <= np.maximum(cap, own * 1.0001)[rows] * 1.05)
     assert float(np.max(np.abs(acc(loose, 0)[free]) - np.maximum(cap, np.abs(acc(c, 0)))[free])) > 0  # the case
+    edge = rows & ~free
+    assert float(np.max(np.abs(acc(loose, 0)[edge]) - np.maximum(cap, np.abs(acc(c, 0)))[edge])) > 0  # and there
     np.testing.assert_allclose(repair_window(H, c, q, pin, J, DT, cfg, z_limit_m_s2=10 * peak), loose, atol=1e-15)
 
 

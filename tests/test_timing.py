@@ -331,7 +331,9 @@ def test_fast_z_travel_after_a_pinned_z_hop_keeps_the_clock(tmp_path):
     fast z move on other_delta's max_z_accel = 3000.  The pin repair's correction on that fast
     steep move bent its path more than Klipper's junction rule lets a segment capped at
     ``max_z_accel * d/|dz|`` turn: 7.7 ms late.  The repair penalises the correction's
-    acceleration harder in such windows (``RepairConfig.steep_accel_factor``)."""
+    acceleration harder in such windows (``RepairConfig.steep_accel_factor``).  The repair's exact
+    bound (``pin_repair._z_bounded``), since it covers the pinned samples next to free ones too,
+    holds this file on its own (0.34 ms with the factor at 1): both stay within 1 ms."""
     from ffcomp.compensate.pin_repair import RepairConfig
 
     text = ("G90\nM83\nG1 X28.400 Y18.138 Z3.899 F14873\nG1 E0.8 F2100\nG1 Z6.818 F8700\nG1 Z8.582 F6334\n"
@@ -345,8 +347,7 @@ def test_fast_z_travel_after_a_pinned_z_hop_keeps_the_clock(tmp_path):
                             CompensateOptions(predict=False, repair=RepairConfig(steep_accel_factor=f),
                                               self_check_drift_ms=1e9))
         drift[f] = abs(s.self_check_drift_ms)
-    assert drift[1.0] > 3.0  # the case
-    assert drift[RepairConfig().steep_accel_factor] < 1.0, drift
+    assert drift[1.0] < 1.0 and drift[RepairConfig().steep_accel_factor] < 1.0, drift
 
 
 @pytest.mark.parametrize("which", ["default", "other"])
@@ -621,10 +622,12 @@ def test_a_z_hop_travel_meets_its_pinned_move_down_on_the_clock(tmp_path, monkey
 
     # (the repair's weight on printed samples, 2 by default, moves the change into the lift and the
     # travel and costs this file's clock 0.08 ms: the mechanism is measured without it)
-    assert abs(drift_ms(print_weight=1.0)) < 0.2  # -0.15 ms (+0.16 before plan_clock.corner_tail)
-    assert abs(drift_ms()) < 0.3  # -0.23 ms
+    assert abs(drift_ms(print_weight=1.0)) < 0.2  # +0.16 ms
+    assert abs(drift_ms()) < 0.3  # +0.20 ms
     monkeypatch.setattr(plan_clock, "CORNER_LEAD_MAX_MM", 0.0)
-    assert abs(drift_ms(lead_in_s=0.0, print_weight=1.0)) > 0.5  # the case: -0.63 ms
+    # the case: +0.34 ms (-0.63 before the repair's exact bound covered the pinned samples next to
+    # free ones, which keeps the travel's turn into the pinned move within the firmware's limits)
+    assert abs(drift_ms(lead_in_s=0.0, print_weight=1.0)) > 0.3
 
 
 def test_a_pinned_z_hop_runs_into_its_travel_on_the_clock(tmp_path, monkeypatch):
@@ -676,3 +679,31 @@ def test_a_lift_right_after_a_printed_line_is_pinned_on_a_klipper_typical_printe
 
     assert abs(drift_ms(True)) < 0.25  # -0.19 ms
     assert abs(drift_ms(False)) > 0.5  # the case: -0.69 ms
+
+
+
+def test_a_stretch_off_the_clock_in_a_long_chain_is_refined_locally(tmp_path, monkeypatch):
+    """``cube_prusa.gcode`` on other_delta: its layer changes turn from printed lines into lifts at
+    ``max_z_accel``, where the feed rounds left single stretches 0.2-0.3 ms off the clock (a chord
+    into the lift slowed to meet its own duration, and the ramp after it, at the acceleration limit,
+    could not catch up); the RMS of the long chains hid them from the joint solve.  With the local
+    refinement (:data:`feed_solve.REFINE_PEAK_MM`) the lateness of the re-planned output over the
+    whole file falls from 0.022 to 0.008 ms RMS and its largest from 0.31 to 0.25 ms."""
+    from ffcomp.pipeline import self_check
+
+    def lateness_ms() -> tuple[float, float]:
+        self_check.TRACE = []
+        try:
+            s = compensate_file(str(ROOT / "samples" / "gcode" / "cube_prusa.gcode"), str(tmp_path / "o.gcode"),
+                                load_profile(OTHER), CompensateOptions(predict=False, self_check_drift_ms=1e9,
+                                                                       self_check_tol_um=1e9))
+            late = np.concatenate([r[2] for r in self_check.TRACE])
+        finally:
+            self_check.TRACE = None
+        return float(np.sqrt(np.mean(late**2))) * 1e3, abs(s.self_check_drift_ms)
+
+    rms, peak = lateness_ms()
+    monkeypatch.setattr(fs, "REFINE_PEAK_MM", np.inf)
+    rms0, peak0 = lateness_ms()
+    assert rms < 0.5 * rms0, (rms0, rms)
+    assert peak < 0.3 and peak0 > peak, (peak0, peak)
