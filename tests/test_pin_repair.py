@@ -321,7 +321,8 @@ def test_a_lifts_x_and_y_correction_runs_straight(profile):
 
 def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     """``lead_into``: the samples within ``span_s`` of the end of a travel (no extrusion) whose next
-    move the predicate picks; none of an extruding move's, none with ``span_s = 0``."""
+    move the predicate picks; none of an extruding move's unless ``printed_s`` (its own span) is
+    given, none with ``span_s = 0``."""
     from ffcomp.gcode.moves import PlannedMove
     from ffcomp.pipeline.limited_moves import lead_into
 
@@ -338,6 +339,10 @@ def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     # move 0 (a travel into z move 1): its samples at 8 and 9 ms; move 2 extrudes: none of it
     assert np.nonzero(hit)[0].tolist() == [8, 9]
     assert not lead_into(idx, moves, t, 0.0, pick).any()
+    # a printed line (move 2, into z move 3) has its own span: 1.5 ms (its sample at 29 ms)
+    both = lead_into(idx, moves, t, 0.0025, pick, printed_s=0.0015)
+    assert np.nonzero(both)[0].tolist() == [8, 9, 29]
+    assert np.nonzero(lead_into(idx, moves, t, 0.0, pick, printed_s=0.0015))[0].tolist() == [29]
 
 
 def test_the_repair_keeps_the_nozzle_z_acceleration_within_the_firmware_limit(model):

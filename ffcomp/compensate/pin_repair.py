@@ -80,6 +80,16 @@ class RepairConfig:
         segment's acceleration at ``max_z_accel * d/|dz|``; on the fidelity bench's z-hop row,
         other_delta, the re-planned output ran 0.63 ms early there, 13 um off the command, and with
         2 ms 0.25 ms and 4 um; 1 ms left 0.32 ms, 3-5 ms no better than 2)
+    lead_in_printed_s : the same for a printed line that runs into such a pinned move (a layer
+        change's lift right after the line, ``pin_layer_lifts``): its last this-many seconds are
+        pinned.  The free command pre-actuated the lift while the plan braked the line in XY at
+        the print acceleration, so the last milliseconds ran steep at that braking, past Klipper's
+        centripetal cap ``max_z_accel / |u_z|`` (which the repair's exact bound, licensed by the
+        command's own acceleration there, cannot take back).  On ``other_delta`` (scratch runs of
+        the nineteenth round): cube_prusa's drift +0.25 -> +0.12 ms (events beyond 0.2 ms 1 -> 0),
+        cylinder_prusa's events beyond 0.2 ms 36 -> 3, cube_wipe_prusa -0.28 -> +0.17 ms; the price
+        is the printed lines' contour on cube_prusa (truth plant) 2.54 -> 2.67 um (lag 5.34 -> 5.39);
+        1 ms kept half of the clock's gain for 2.62 um
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
         acceleration scales above are divided by this (the firmware caps those segments and their
         junctions at ``max_z_accel * d/|dz|``)
@@ -120,6 +130,7 @@ class RepairConfig:
     z_only_hops: bool = False
     lift_xy_accel_factor: float = 100.0
     lead_in_s: float = 0.002
+    lead_in_printed_s: float = 0.002
     still_near_steep: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0
@@ -382,6 +393,9 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
 #: its speed, or its speed below ``STILL_M_S`` (m/s)
 STEEP_SHARE = 0.3
 STILL_M_S = 2e-3
+#: :func:`_z_bounded` gives up (keeps the unbounded knots) where its bound would move a knot further
+#: than this (m)
+MAX_BOUND_CHANGE_M = 1e-3
 #: :func:`_z_bounded` keeps each of x and y within this share of the centripetal cap
 #: ``max_z_accel / |u_z|`` (the rule bounds their vector sum)
 XY_SHARE = float(np.sqrt(0.5))
@@ -452,7 +466,11 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
         return None
     zv = _active_set_qp(zvec0, csr_matrix(A), -lim - base, lim - base,
                         lambda r: cho_solve(op.factor, r, check_finite=False), 3 * nf, 1)
-    return None if zv is None else zv.reshape(3, nf).T
+    # a working set the window's normal equations barely resist (bounds that fight one another on
+    # a few knots) gave knots metres away: such a solve is no repair
+    if zv is None or not np.all(np.isfinite(zv)) or float(np.max(np.abs(zv - zvec0))) > MAX_BOUND_CHANGE_M:
+        return None
+    return zv.reshape(3, nf).T
 
 
 def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, J: np.ndarray, dt_s: float,

@@ -56,17 +56,22 @@ def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: flo
     return hit
 
 
-def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred) -> np.ndarray:
-    """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion) whose
-    next move satisfies ``pred``; ``t_s``: the samples' times, s."""
-    if span_s <= 0.0 or not len(move_index):
+def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred,
+              printed_s: float = 0.0) -> np.ndarray:
+    """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion), or
+    within ``printed_s`` of the end of a move that extrudes, whose next move satisfies ``pred``;
+    ``t_s``: the samples' times, s."""
+    if max(span_s, printed_s) <= 0.0 or not len(move_index):
         return np.zeros(len(move_index), bool)
     uniq, inv = np.unique(move_index, return_inverse=True)
     from_s = np.full(len(uniq), np.inf)  # per move: the time from which its samples lead in
     for q, i in enumerate(uniq.tolist()):
         mv, nx = moves.get(int(i)), moves.get(int(i) + 1)
-        if mv is not None and nx is not None and mv.kind == "move" and mv.end_mm[3] == mv.start_mm[3] and pred(nx):
-            from_s[q] = mv.t_end_s - span_s
+        if mv is None or nx is None or mv.kind != "move":
+            continue
+        span = span_s if mv.end_mm[3] == mv.start_mm[3] else printed_s
+        if span > 0.0 and pred(nx):
+            from_s[q] = mv.t_end_s - span
     return np.asarray(t_s) > from_s[inv.reshape(-1)]
 
 
