@@ -333,7 +333,7 @@ def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     moves = {0: mv(0, 0.0, 0.010), 1: mv(1, 0.010, 0.010, z1=0.6), 2: mv(2, 0.020, 0.010, e=0.5),
              3: mv(3, 0.030, 0.010, z1=0.6)}
     t = np.arange(0, 40) * 1e-3
-    idx = (t // 0.010).astype(int)
+    idx = np.arange(40) // 10
     pick = lambda m: m.end_mm[2] != m.start_mm[2]  # noqa: E731  (the z moves: 1 and 3)
     hit = lead_into(idx, moves, t, 0.0025, pick)
     # move 0 (a travel into z move 1): its samples at 8 and 9 ms; move 2 extrudes: none of it
