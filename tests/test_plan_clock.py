@@ -166,6 +166,41 @@ def test_a_run_leaves_a_corner_with_a_first_segment_the_junction_allows(t0):
     assert far is not None and far[0] >= n_drop
 
 
+def test_a_slow_lifts_first_point_may_lie_in_its_cruise():
+    """A lift that leaves the corner at 5 mm/s and cruises at 10 mm/s within 1.7 ms (Cura's layer
+    change, ``G1 Z.. F600``, on other_delta): the junction wants a first segment of 16.7 um, which
+    the plan covers in its cruise.  The first point is the plan's there, at the plan's time (it was
+    left at the first sample, 3.6 um up, and the firmware took the corner 0.4 ms off the clock)."""
+    v_j, vc, a, t0, dz = 5.0, 10.0, 3000.0, 0.0103, 0.3
+    ta = (vc - v_j) / a
+    s_acc = v_j * ta + 0.5 * a * ta * ta
+    tc = (dz - s_acc) / vc
+    up = PlannedMove(1, 2, "move", t0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0 + dz, 0.0), dz, (0.0, 0.0, 1.0, 0.0),
+                     v_j, vc, vc, a, ta, tc, 0.0)
+    travel = PlannedMove(0, 1, "move", 0.0, (-10.0, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), 10.0,
+                         (1.0, 0.0, 0.0, 0.0), 0.0, 100.0, v_j, 3000.0, 0.01, 0.0, 0.0003)
+    k = np.arange(0, 40)
+    i0 = int(np.ceil(t0 / DT))
+    X = np.zeros((len(k), 3))
+    X[:, 2] = 1.0 + np.array([up.distance_at(t) for t in k * DT])
+    reach = 2.0 * v_j**2 / a
+    assert reach > s_acc  # the case: the point lies in the cruise
+    got = corner_lead(DT, 100, i0, len(k), X, up, k, np.ones(len(k), bool), np.array([0.0, 0.0, 1.0]), travel)
+    assert got is not None
+    n_drop, pt, k_pt = got
+    d = X[i0:, 2] - 1.0
+    m = int(np.argmax(d >= reach))
+    if pt is None:
+        assert d[m] < reach + CORNER_LEAD_GAP_MM and n_drop == m
+    else:
+        np.testing.assert_allclose(pt, [0.0, 0.0, 1.0 + reach], atol=1e-12)
+        assert up.distance_at((k_pt - 100) * DT) == pytest.approx(reach, abs=1e-9)
+    # beyond the cruise (a move that brakes within the reach) there is no rule to follow
+    short = up._replace(cruise_t_s=0.0, decel_t_s=tc)
+    assert corner_lead(DT, 100, i0, len(k), X, short, k, np.ones(len(k), bool), np.array([0.0, 0.0, 1.0]),
+                       travel) is None
+
+
 def _corner_up(v_j=2.739, a=3000.0, t0=0.0103, dz=0.2, cruise_v=None):
     """A z move up from (0, 0, 1) that brakes at ``a`` (mm/s^2) into the corner with an X travel it
     passes at ``v_j`` (mm/s), and that travel; with ``cruise_v``, the move cruises at that speed

@@ -118,7 +118,9 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     before it go.  Where a sample lies just beyond that point (within
     :data:`CORNER_LEAD_GAP_MM`: the two would print as one point, a hold where the firmware
     stops), that sample is the first point instead.  Only where the run's samples up to there
-    are on the plan (pinned) and the run starts on the move's start.
+    are on the plan (pinned), the run starts on the move's start and the point falls in the move's
+    ramp or cruise (a slow lift, 5 -> 10 mm/s, cruises within the reach: its first chord was left at
+    3.6 um, and the firmware took the corner 0.4 ms off the clock; cube_cura on other_delta).
     """
     if (on_plan is None or b - a < 4 or not on_plan[a] or mv is None or prev is None or prev.kind != MOVE
             or k_plan is None or lead_pt is None or k_plan[a] < 0 or mv.start_v_mm_s <= 1e-9
@@ -143,8 +145,12 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     if d[m] < reach + CORNER_LEAD_GAP_MM:
         return m, None, None
     tau = (np.sqrt(v * v + 2.0 * acc * reach) - v) / acc
-    if tau > mv.accel_t_s:
-        return None
+    if tau > mv.accel_t_s:  # past the ramp: in the cruise (a slow lift reaches it within the reach)
+        vc = mv.cruise_v_mm_s
+        s_acc = v * mv.accel_t_s + 0.5 * acc * mv.accel_t_s**2
+        tau = mv.accel_t_s + (reach - s_acc) / max(vc, 1e-9)
+        if tau > mv.accel_t_s + mv.cruise_t_s:
+            return None
     k = (mv.t_start_s + tau) / dt + (k0 + a - int(k_plan[a]))
     if not (k0 + a - 1 < k < k0 + a + m - 1e-6):
         return None
