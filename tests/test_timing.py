@@ -707,3 +707,24 @@ def test_a_stretch_off_the_clock_in_a_long_chain_is_refined_locally(tmp_path, mo
     rms0, peak0 = lateness_ms()
     assert rms < 0.5 * rms0, (rms0, rms)
     assert peak < 0.3 and peak0 > peak, (peak0, peak)
+
+
+def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_path, monkeypatch):
+    """``cylinder_prusa.gcode`` up to its layer change at z = 3 on other_delta: that layer's lift began
+    two samples before a chunk's end, so the writer saw too little of it to move its first point
+    out of the corner (``plan_clock.corner_lead``): a 1.4 um first segment, whose junction Klipper
+    slows to a crawl, and the lift ran 0.42 ms late.  The writer holds such a run back for the next
+    chunk (``writer.CARRY_SAMPLES``)."""
+    from ffcomp.gcode import writer
+
+    src = tmp_path / "cyl.gcode"
+    src.write_text("\n".join((ROOT / "samples/gcode/cylinder_prusa.gcode").read_text().splitlines()[:3560]) + "\n")
+
+    def drift_ms() -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return abs(s.self_check_drift_ms)
+
+    assert drift_ms() < 0.2  # +0.12 ms
+    monkeypatch.setattr(writer, "CARRY_SAMPLES", 0)
+    assert drift_ms() > 0.3  # the case: +0.42 ms

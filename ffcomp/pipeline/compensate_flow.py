@@ -341,6 +341,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                                          float(np.max(np.abs(qc - meta["q"]))) * 1e6)
             qf.write(qc.astype(np.float32).tobytes())
             if new_stream or not k_written:  # the machine stands where the plan starts the stream
+                writer.flush_samples()  # (the last stream's held-back samples first)
                 writer.last_pt = None
                 writer.stream_start_mm = np.round(meta["xyz"][0] * 1e3, 4)
                 if not k_written:
@@ -404,6 +405,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
         for qc, meta in stream:
             emit(qc, meta)
         if cuts is not None:
+            writer.flush_samples()
             cuts.before_finish(writer)
         writer.finish()
     if pred is not None:
