@@ -343,6 +343,12 @@ def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     both = lead_into(idx, moves, t, 0.0025, pick, printed_s=0.0015)
     assert np.nonzero(both)[0].tolist() == [8, 9, 29]
     assert np.nonzero(lead_into(idx, moves, t, 0.0, pick, printed_s=0.0015))[0].tolist() == [29]
+    # but not into a z move that extrudes (the extruder's junction rule governs that corner); a
+    # travel still leads into one
+    wet = dict(moves)
+    wet[1] = mv(1, 0.010, 0.010, z1=0.6, e=0.3)
+    wet[3] = mv(3, 0.030, 0.010, z1=0.6, e=0.3)
+    assert np.nonzero(lead_into(idx, wet, t, 0.0025, pick, printed_s=0.0015))[0].tolist() == [8, 9]
 
 
 def test_the_repair_keeps_the_nozzle_z_acceleration_within_the_firmware_limit(model):

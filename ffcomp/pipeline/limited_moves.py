@@ -59,8 +59,8 @@ def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: flo
 def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred,
               printed_s: float = 0.0) -> np.ndarray:
     """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion), or
-    within ``printed_s`` of the end of a move that extrudes, whose next move satisfies ``pred``;
-    ``t_s``: the samples' times, s."""
+    within ``printed_s`` of the end of a move that extrudes into one that does not, whose next move
+    satisfies ``pred``; ``t_s``: the samples' times, s."""
     if max(span_s, printed_s) <= 0.0 or not len(move_index):
         return np.zeros(len(move_index), bool)
     uniq, inv = np.unique(move_index, return_inverse=True)
@@ -69,7 +69,10 @@ def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: floa
         mv, nx = moves.get(int(i)), moves.get(int(i) + 1)
         if mv is None or nx is None or mv.kind != "move":
             continue
-        span = span_s if mv.end_mm[3] == mv.start_mm[3] else printed_s
+        printed = mv.end_mm[3] != mv.start_mm[3]
+        if printed and nx.end_mm[3] != nx.start_mm[3]:
+            continue  # (a lift that extrudes: Klipper's extruder junction rule governs that corner)
+        span = printed_s if printed else span_s
         if span > 0.0 and pred(nx):
             from_s[q] = mv.t_end_s - span
     return np.asarray(t_s) > from_s[inv.reshape(-1)]
