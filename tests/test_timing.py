@@ -193,6 +193,35 @@ def test_the_joint_refinement_puts_a_mistimed_chain_back_on_the_clock(profile):
     np.testing.assert_array_equal(plan(F)[0], p[0])
 
 
+def test_the_dense_duration_jacobian_equals_the_banded_one(profile):
+    """:func:`feed_solve._duration_jacobian` on a short chain (every free feed perturbed on its own
+    in one batched plan) against :func:`feed_solve._banded_jacobian` (interleaved groups, each
+    duration counted within ``REFINE_BAND`` of its feed): equal within the band, and the dense one
+    next to nothing beyond it (the band's premise)."""
+    lim = ChainLimits(profile, 2e5, 100.0)
+    P0, P1, D = _trapezoid_chain(T=0.1, step_ms=1)
+    zero = np.zeros(len(D))
+    d = P1 - P0
+    dist = np.linalg.norm(d, axis=1)
+    vmax, acc = segment_limits(lim, P0, P1, zero)
+    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero, acc, 2 * dist * acc)])
+
+    def plan(F):
+        return plan_chain(dist, np.minimum(F, vmax) ** 2, acc, jv, 0.0, 0.0)
+
+    F = dist / D * np.random.default_rng(5).uniform(0.9, 1.1, len(D))
+    free = np.random.default_rng(6).random(len(D)) < 0.7
+    t = plan(F)[0]
+    assert len(D) <= fs.DENSE_JACOBIAN
+    dense = fs._duration_jacobian(plan, F, t, free)
+    banded = fs._banded_jacobian(plan, F, t, free).toarray()
+    rows, cols = np.arange(len(D))[:, None], np.nonzero(free)[0][None, :]
+    near = np.abs(rows - cols) <= fs.REFINE_BAND
+    np.testing.assert_allclose(banded[near], dense[near], rtol=1e-9, atol=1e-15)
+    assert np.all(banded[~near] == 0.0)
+    assert np.max(np.abs(dense[~near])) <= 1e-3 * np.max(np.abs(dense))
+
+
 def test_extrude_only_feed_round_trip():
     de, t = np.array([0.8, 0.05, 2.0]), np.array([0.05, 0.02, 0.1])
     v = fs.extrude_only_feed(de, t, 3000.0, 120.0)

@@ -65,12 +65,18 @@ REFINE_MIN_MM = 2e-3
 #: where the chain's RMS stays below ``REFINE_MIN_MM`` but a segment end is more than
 #: ``REFINE_PEAK_MM`` off (lateness times speed, mm), the refinement frees only the feeds within
 #: ``REFINE_LOCAL`` segments of such ends (one stretch off the clock in a long chain: a corner into
-#: a lift at ``max_z_accel``, which the RMS of the chain dilutes)
+#: a lift at ``max_z_accel``, which the RMS of the chain dilutes), each stretch planned as a
+#: sub-chain ``REFINE_MARGIN`` segments longer either side (:func:`_refine_stretches`; 12 left a
+#: lift's ramp on ringing_tower_prusa 0.4 ms late, the speeds at a nearer edge fixed too soon)
 REFINE_PEAK_MM = 1e-3
 REFINE_LOCAL = 24
+REFINE_MARGIN = 48
 REFINE_V0 = 10.0
 REFINE_BAND = 12
 REFINE_DENSE = 600
+#: chains of at most this many segments get the refinement's Jacobian by one batched plan of every
+#: free feed perturbed (:func:`_duration_jacobian`); longer ones banded (:func:`_banded_jacobian`)
+DENSE_JACOBIAN = 160
 
 
 @dataclass
@@ -269,15 +275,51 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
         best, best_cost, best_plan = FC, cost(pC[0]), pC
     if REFINE_ITERS and free.any():
         w = clock_weights(dist, D)
+        hi = np.minimum(Fmax, vmax)
         off = np.abs(w * (late0 + np.cumsum(best_plan[0] - D)))
-        fr = free
-        if float(np.sqrt(np.mean(off**2))) <= REFINE_MIN_MM:
-            near = np.convolve(off > REFINE_PEAK_MM, np.ones(2 * REFINE_LOCAL + 1))[REFINE_LOCAL:REFINE_LOCAL + len(off)]
-            fr = free & (near > 0)
-        if fr.any():
-            best, best_plan = _refine(plan, best, best_plan, fr, D, late0, np.minimum(Fmax, vmax), w)
+        if float(np.sqrt(np.mean(off**2))) > REFINE_MIN_MM:
+            best, best_plan = _refine(plan, best, best_plan, free, D, late0, hi, w)
+        elif np.any(off > REFINE_PEAK_MM):
+            best, best_plan = _refine_stretches(plan, dist, vmax, acc, jv, best, best_plan, free, off, D, late0,
+                                                hi, w)
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
+
+
+def _refine_stretches(plan, dist, vmax, acc, jv, F, p, free, off, D, late0, hi, w):
+    """:func:`_refine` of the free feeds within :data:`REFINE_LOCAL` segments of the segment ends
+    more than :data:`REFINE_PEAK_MM` off (``off``: lateness times speed, mm), each such stretch on
+    its own sub-chain (:data:`REFINE_MARGIN` more segments either side, entered and left at the
+    speeds of the chain's plan ``p``): a refinement's dozens of plans then cost the stretch's length, not the
+    chain's.  The chain is planned again with the new feeds, kept where its weighted lateness fell.
+    """
+    n = len(D)
+    hot = np.convolve(off > REFINE_PEAK_MM, np.ones(2 * REFINE_LOCAL + 1))[REFINE_LOCAL:REFINE_LOCAL + n] > 0
+    hot &= free
+    if not hot.any():
+        return F, p
+    t, vin, vout = p
+    late_end = late0 + np.cumsum(t - D)
+    edges = np.flatnonzero(np.diff(np.r_[0, hot.astype(np.int8), 0]))
+    Fn = F.copy()
+    for a, b in zip(edges[::2].tolist(), edges[1::2].tolist()):
+        s0, s1 = max(a - REFINE_MARGIN, 0), min(b + REFINE_MARGIN, n)
+        jv_s = jv[s0:s1].copy()
+        v0 = float(vin[s0]) ** 2
+        v1 = float(vout[s1 - 1]) ** 2
+
+        def sub(Fs, s0=s0, s1=s1, jv_s=jv_s, v0=v0, v1=v1):
+            cv2 = np.minimum(Fs, vmax[s0:s1]) ** 2
+            return plan_chain(dist[s0:s1], cv2, acc[s0:s1], jv_s, v0, v1)
+
+        l0 = late0 if s0 == 0 else float(late_end[s0 - 1])
+        Fs, _ = _refine(sub, Fn[s0:s1], sub(Fn[s0:s1]), hot[s0:s1], D[s0:s1], l0, hi[s0:s1], w[s0:s1])
+        Fn[s0:s1] = Fs
+    pn = plan(Fn)
+    late_n = late0 + np.cumsum(pn[0] - D)
+    if np.sum((w * late_n) ** 2) < np.sum(off**2) and np.max(np.abs(late_n)) <= np.max(np.abs(late_end)):
+        return Fn, pn
+    return F, p
 
 
 def _refine(plan, F, p, free, D, late0, hi, w):
@@ -315,6 +357,18 @@ def _refine(plan, F, p, free, D, late0, hi, w):
 
 
 def _duration_jacobian(plan, F, t, free):
+    """d(duration)/d(log feed) (n, free segments): :func:`_banded_jacobian`, or on a short chain (up
+    to :data:`DENSE_JACOBIAN` segments) every free feed perturbed on its own in one batched plan."""
+    if len(t) > DENSE_JACOBIAN:
+        return _banded_jacobian(plan, F, t, free)
+    fi = np.nonzero(free)[0]
+    h = 1e-6
+    Fp = np.repeat(F[None], fi.size, axis=0)
+    Fp[np.arange(fi.size), fi] *= np.exp(h)
+    return ((plan(Fp)[0] - t) / h).T  # (n, free)
+
+
+def _banded_jacobian(plan, F, t, free):
     """d(duration)/d(log feed) (n, free segments), sparse: finite differences on interleaved groups
     of feeds, each duration counted for the perturbed feed within :data:`REFINE_BAND` segments."""
     n = len(t)
@@ -345,8 +399,10 @@ def _damped_solver(Jt, w, b):
     """``solve(lam)``: the step ``x`` minimising ``|w * cumsum(Jt x) - b|^2 + lam |x|^2`` (the
     lateness is the running sum of the durations).  Small chains: one eigendecomposition serves
     every damping tried; long ones (more than :data:`REFINE_DENSE` free segments): LSQR."""
+    if not hasattr(Jt, "tocsr"):  # dense (a short chain)
+        Jt = csr_matrix(Jt) if Jt.shape[1] > REFINE_DENSE else Jt
     if Jt.shape[1] <= REFINE_DENSE:
-        A = w[:, None] * np.cumsum(Jt.toarray(), axis=0)
+        A = w[:, None] * np.cumsum(Jt.toarray() if hasattr(Jt, "toarray") else Jt, axis=0)
         ev, V = np.linalg.eigh(A.T @ A)
         g = V.T @ (A.T @ b)
         ev = np.maximum(ev, 0.0)
