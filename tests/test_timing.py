@@ -717,7 +717,7 @@ def test_a_stretch_off_the_clock_in_a_long_chain_is_refined_locally(tmp_path, mo
     into the lift slowed to meet its own duration, and the ramp after it, at the acceleration limit,
     could not catch up); the RMS of the long chains hid them from the joint solve.  With the local
     refinement (:data:`feed_solve.REFINE_PEAK_MM`) the lateness of the re-planned output over the
-    whole file falls from 0.022 to 0.008 ms RMS and its largest from 0.31 to 0.25 ms."""
+    whole file falls from 0.019 to 0.010 ms RMS and its largest from 0.27 to 0.16 ms."""
     from ffcomp.pipeline import self_check
 
     def lateness_ms() -> tuple[float, float]:
@@ -734,8 +734,8 @@ def test_a_stretch_off_the_clock_in_a_long_chain_is_refined_locally(tmp_path, mo
     rms, peak = lateness_ms()
     monkeypatch.setattr(fs, "REFINE_PEAK_MM", np.inf)
     rms0, peak0 = lateness_ms()
-    assert rms < 0.5 * rms0, (rms0, rms)
-    assert peak < 0.3 and peak0 > peak, (peak0, peak)
+    assert rms < 0.6 * rms0, (rms0, rms)
+    assert peak < 0.2 and peak0 > peak, (peak0, peak)
 
 
 def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_path, monkeypatch):
