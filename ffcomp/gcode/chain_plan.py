@@ -85,7 +85,8 @@ def segment_limits(lim: ChainLimits, start: np.ndarray, end: np.ndarray, de: np.
         er = np.where(dist > 0, de / dist, 0.0)
     ext = extruder_limited(d, de)
     if ext.any():
-        inv = 1.0 / np.abs(er[ext])
+        with np.errstate(divide="ignore"):  # (an extruder-only segment: no XYZ length, no cap from it)
+            inv = 1.0 / np.abs(er[ext])
         vmax[ext] = np.minimum(vmax[ext], lim.max_e_velocity * inv)
         acc[ext] = np.minimum(acc[ext], lim.max_e_accel * inv)
     return vmax, acc
