@@ -393,8 +393,6 @@ def _repair_frames(op: _FrameOperator, c: np.ndarray, q: np.ndarray, pins: np.nd
 #: its speed, or its speed below ``STILL_M_S`` (m/s)
 STEEP_SHARE = 0.3
 STILL_M_S = 2e-3
-#: :func:`_z_bounded` bounds x and y where the nozzle's z velocity is at least this share of its speed
-SLOPE_SHARE = 0.05
 #: :func:`_z_bounded` gives up (keeps the unbounded knots) where its bound would move a knot further
 #: than this (m)
 MAX_BOUND_CHANGE_M = 1e-3
@@ -414,9 +412,8 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     Klipper caps every segment's acceleration at ``max_z_accel * d/|dz|``, so a nozzle that moves
     in z harder than ``max_z_accel`` runs late; the repair's acceleration penalty is soft, and next
     to a pinned z move (the lift after homing, a layer change's) the corrected command dipped and
-    rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  On the samples that move with
-    some z (at least :data:`SLOPE_SHARE` of the speed), the nozzle's x and y accelerations stay
-    within ``z_limit / |u_z|`` as well (Klipper's segment cap and centripetal
+    rose by 5-15 um in a few milliseconds, 0.2-0.6 ms off the clock.  On the steep samples that move,
+    the nozzle's x and y accelerations stay within ``z_limit / |u_z|`` as well (Klipper's centripetal
     junction rule across such a move: a correction bent a 150 mm/s descent sideways and the firmware
     ran it 0.55 ms late, 62 um off the clock), each within ``1/sqrt(2)`` of it (:data:`XY_SHARE`; the
     rule bounds the vector).  The rows cover the pinned samples next to free ones too: their second
@@ -432,17 +429,14 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     v = np.gradient(c + o + op.S @ z0, axis=0) @ J.T / dt_s  # the unbounded repair's nozzle velocity
     sp = np.linalg.norm(v, axis=1)
     steep = (np.abs(v[:, 2]) >= STEEP_SHARE * sp) | (sp < STILL_M_S)
-    # x and y wherever the nozzle moves with some z (the cap, max_z_accel / |u_z|, binds fast
-    # braking even on a shallow slope: a z-hop's travel braking at 24,000 mm/s^2 on a 0.13 slope)
-    sloped = (sp >= STILL_M_S) & (np.abs(v[:, 2]) >= SLOPE_SHARE * sp)
     # every sample whose second difference moves with the free knots: the free ones and the pinned
     # ones next to them (the command's turn into a pinned lift happens there)
     touched = ~pin[1:-1] | ~pin[:-2] | ~pin[2:]
-    rows = np.nonzero(touched & (steep | sloped)[1:-1])[0] + 1
+    rows = np.nonzero(touched & steep[1:-1])[0] + 1
     # and the window's two ends, where the correction meets the unrepaired command outside: its own
     # part of the acceleration there (a bound that held the command hard inside left the correction
     # at 36 um on the last sample, a step the firmware took 0.4 ms late)
-    ends = np.array([r for r in (0, n - 1) if n >= 3 and not pin[r] and (steep[r] or sloped[r])], int)
+    ends = np.array([r for r in (0, n - 1) if n >= 3 and not pin[r] and steep[r]], int)
     if n < 3 or not (rows.size or ends.size):
         return None
     inner = np.r_[np.ones(rows.size, bool), np.zeros(ends.size, bool)]
@@ -451,10 +445,10 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     c2[inner] = np.diff(c, 2, axis=0)[rows[inner] - 1]
     acc0 = c2 + _second_difference(o)[rows]  # the repaired command's before the free knots' part
     D2 = _second_difference(op.S)[rows]
-    # z on the steep samples; x and y on those that move with some z (Klipper's centripetal
-    # junction rule and its segment cap at max_z_accel / |u_z|)
-    moving = sloped[rows]
-    parts = [(2, steep[rows], np.full(len(rows), z_limit))]
+    # z on every such sample; x and y on those that move (across a steep move: Klipper's centripetal
+    # junction rule at max_z_accel / |u_z|)
+    moving = sp[rows] >= STILL_M_S
+    parts = [(2, np.ones(len(rows), bool), np.full(len(rows), z_limit))]
     if moving.any():
         # the rule bounds the vector (x, y) acceleration: each component within 1/sqrt(2) of the cap
         a_seg = XY_SHARE * np.minimum(z_limit * sp[rows] / np.maximum(np.abs(v[rows, 2]), 1e-12), 1000.0)
