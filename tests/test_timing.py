@@ -35,6 +35,23 @@ def _trapezoid_chain(v=150.0, ta=0.015, T=0.6, step_ms=5):
     return P[:-1], P[1:], np.diff(k) * 1e-3
 
 
+def _trapezoid_planner(profile, **chain):
+    """:func:`_trapezoid_chain` as 1 ms segments on ``profile`` (no corner rule to speak of): the
+    intended durations, the lengths, the speed caps and ``plan(F)``, Klipper's plan of the feeds."""
+    lim = ChainLimits(profile, 2e5, 100.0)
+    P0, P1, D = _trapezoid_chain(step_ms=1, **chain)
+    zero = np.zeros(len(D))
+    d = P1 - P0
+    dist = np.linalg.norm(d, axis=1)
+    vmax, acc = segment_limits(lim, P0, P1, zero)
+    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero, acc, 2 * dist * acc)])
+
+    def plan(F):
+        return plan_chain(dist, np.minimum(F, vmax) ** 2, acc, jv, 0.0, 0.0)
+
+    return D, dist, vmax, plan
+
+
 def test_feed_solve_puts_every_segment_end_on_the_intended_clock(profile):
     """A trapezoid sampled into segments: plain length / duration runs late at every ramp; the
     closed-loop feeds end every segment on its intended time (checked by an independent re-plan)."""
@@ -168,17 +185,7 @@ def test_the_joint_refinement_puts_a_mistimed_chain_back_on_the_clock(profile):
     """:func:`feed_solve._refine` (Gauss-Newton on the feeds) from feeds 20 % off at random, on a
     trapezoid written as 1 ms segments: the lateness times speed falls more than tenfold, the feeds
     stay within their bounds and the plan returned is the plan of the feeds returned."""
-    lim = ChainLimits(profile, 2e5, 100.0)
-    P0, P1, D = _trapezoid_chain(step_ms=1)
-    zero = np.zeros(len(D))
-    d = P1 - P0
-    dist = np.linalg.norm(d, axis=1)
-    vmax, acc = segment_limits(lim, P0, P1, zero)
-    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero, acc, 2 * dist * acc)])
-
-    def plan(F):
-        return plan_chain(dist, np.minimum(F, vmax) ** 2, acc, jv, 0.0, 0.0)
-
+    D, dist, vmax, plan = _trapezoid_planner(profile)
     F0 = dist / D * np.random.default_rng(3).uniform(0.8, 1.2, len(D))
     hi = np.minimum(dist / (fs.MIN_SHARE * D), vmax)
     w = fs.clock_weights(dist, D)
@@ -198,17 +205,7 @@ def test_the_dense_duration_jacobian_equals_the_banded_one(profile):
     in one batched plan) against :func:`feed_solve._banded_jacobian` (interleaved groups, each
     duration counted within ``REFINE_BAND`` of its feed): equal within the band, and the dense one
     next to nothing beyond it (the band's premise)."""
-    lim = ChainLimits(profile, 2e5, 100.0)
-    P0, P1, D = _trapezoid_chain(T=0.1, step_ms=1)
-    zero = np.zeros(len(D))
-    d = P1 - P0
-    dist = np.linalg.norm(d, axis=1)
-    vmax, acc = segment_limits(lim, P0, P1, zero)
-    jv = np.concatenate([[0.0], junction_v2(lim, d / dist[:, None], zero, acc, 2 * dist * acc)])
-
-    def plan(F):
-        return plan_chain(dist, np.minimum(F, vmax) ** 2, acc, jv, 0.0, 0.0)
-
+    D, dist, vmax, plan = _trapezoid_planner(profile, T=0.1)
     F = dist / D * np.random.default_rng(5).uniform(0.9, 1.1, len(D))
     free = np.random.default_rng(6).random(len(D)) < 0.7
     t = plan(F)[0]
