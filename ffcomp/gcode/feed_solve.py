@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
+from scipy.sparse import csr_matrix, issparse
 from scipy.sparse.linalg import LinearOperator, lsqr
 
 from .chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits
@@ -291,8 +291,9 @@ def _refine_stretches(plan, dist, vmax, acc, jv, F, p, free, off, D, late0, hi, 
     """:func:`_refine` of the free feeds within :data:`REFINE_LOCAL` segments of the segment ends
     more than :data:`REFINE_PEAK_MM` off (``off``: lateness times speed, mm), each such stretch on
     its own sub-chain (:data:`REFINE_MARGIN` more segments either side, entered and left at the
-    speeds of the chain's plan ``p``): a refinement's dozens of plans then cost the stretch's length, not the
-    chain's.  The chain is planned again with the new feeds, kept where its weighted lateness fell.
+    speeds of the chain's plan ``p``): a refinement's dozens of plans then cost the stretch's
+    length, not the chain's.  The chain is planned again with the new feeds, kept where its
+    weighted lateness fell and its largest lateness did not grow.
     """
     n = len(D)
     hot = np.convolve(off > REFINE_PEAK_MM, np.ones(2 * REFINE_LOCAL + 1))[REFINE_LOCAL:REFINE_LOCAL + n] > 0
@@ -400,14 +401,13 @@ def _damped_solver(Jt, w, b):
     """``solve(lam)``: the step ``x`` minimising ``|w * cumsum(Jt x) - b|^2 + lam |x|^2`` (the
     lateness is the running sum of the durations).  Small chains: one eigendecomposition serves
     every damping tried; long ones (more than :data:`REFINE_DENSE` free segments): LSQR."""
-    if not hasattr(Jt, "tocsr"):  # dense (a short chain)
-        Jt = csr_matrix(Jt) if Jt.shape[1] > REFINE_DENSE else Jt
     if Jt.shape[1] <= REFINE_DENSE:
-        A = w[:, None] * np.cumsum(Jt.toarray() if hasattr(Jt, "toarray") else Jt, axis=0)
+        A = w[:, None] * np.cumsum(Jt.toarray() if issparse(Jt) else Jt, axis=0)
         ev, V = np.linalg.eigh(A.T @ A)
         g = V.T @ (A.T @ b)
         ev = np.maximum(ev, 0.0)
         return lambda lam: V @ (g / (ev + lam))
+    Jt = csr_matrix(Jt)  # (a dense Jacobian of a short chain with many free feeds)
     JtT = Jt.T.tocsr()
     A = LinearOperator(Jt.shape, matvec=lambda x: w * np.cumsum(Jt @ x),
                        rmatvec=lambda y: JtT @ np.cumsum((w * y)[::-1])[::-1])
