@@ -904,10 +904,6 @@ class StreamingInverse:
         return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=True))
 
 
-#: :func:`_active_set_qp` gives up (the caller falls back) on a working set this ill-conditioned
-QP_MAX_COND = 1e10
-
-
 def _active_set_qp(c0: np.ndarray, A, lo: np.ndarray, hi: np.ndarray, g_solve, nJ: int, C: int,
                    max_iter: int = 60) -> np.ndarray | None:
     """``argmin 1/2 c^T G c - g^T c`` subject to ``lo <= A c <= hi``, exactly, from the unconstrained
@@ -947,13 +943,8 @@ def _active_set_qp(c0: np.ndarray, A, lo: np.ndarray, hi: np.ndarray, g_solve, n
                     cols[i] = np.concatenate([g_solve(row[ch * nJ:(ch + 1) * nJ]) for ch in range(C)])
             Y = np.stack([cols[i] for i in w.tolist()], axis=1)
             b = np.where(side[w] > 0, hi[w], lo[w])
-            M = Aw @ Y
-            # a working set of rows that (nearly) repeat one another has no unique multipliers:
-            # their solve gave carriage commands of 1e11 mm
-            if np.linalg.cond(M) > QP_MAX_COND:
-                return None
             try:
-                lam = np.linalg.solve(M, Aw @ c0 - b)
+                lam = np.linalg.solve(Aw @ Y, Aw @ c0 - b)
             except np.linalg.LinAlgError:
                 return None
             score = side[w] * lam
