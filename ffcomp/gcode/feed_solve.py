@@ -306,13 +306,10 @@ def _refine_stretches(plan, dist, vmax, acc, jv, F, p, free, off, D, late0, hi, 
     Fn = F.copy()
     for a, b in zip(edges[::2].tolist(), edges[1::2].tolist()):
         s0, s1 = max(a - REFINE_MARGIN, 0), min(b + REFINE_MARGIN, n)
-        jv_s = jv[s0:s1].copy()
-        v0 = float(vin[s0]) ** 2
-        v1 = float(vout[s1 - 1]) ** 2
+        v0, v1 = float(vin[s0]) ** 2, float(vout[s1 - 1]) ** 2
 
-        def sub(Fs, s0=s0, s1=s1, jv_s=jv_s, v0=v0, v1=v1):
-            cv2 = np.minimum(Fs, vmax[s0:s1]) ** 2
-            return plan_chain(dist[s0:s1], cv2, acc[s0:s1], jv_s, v0, v1)
+        def sub(Fs, s0=s0, s1=s1, v0=v0, v1=v1):
+            return plan_chain(dist[s0:s1], np.minimum(Fs, vmax[s0:s1]) ** 2, acc[s0:s1], jv[s0:s1], v0, v1)
 
         l0 = late0 if s0 == 0 else float(late_end[s0 - 1])
         Fs, _ = _refine(sub, Fn[s0:s1], sub(Fn[s0:s1]), hot[s0:s1], D[s0:s1], l0, hi[s0:s1], w[s0:s1])
@@ -407,7 +404,8 @@ def _damped_solver(Jt, w, b):
         g = V.T @ (A.T @ b)
         ev = np.maximum(ev, 0.0)
         return lambda lam: V @ (g / (ev + lam))
-    Jt = csr_matrix(Jt)  # (a dense Jacobian of a short chain with many free feeds)
+    if not issparse(Jt):  # (a dense Jacobian of a short chain with many free feeds)
+        Jt = csr_matrix(Jt)
     JtT = Jt.T.tocsr()
     A = LinearOperator(Jt.shape, matvec=lambda x: w * np.cumsum(Jt @ x),
                        rmatvec=lambda y: JtT @ np.cumsum((w * y)[::-1])[::-1])
