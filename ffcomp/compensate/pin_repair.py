@@ -521,3 +521,73 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     out = c + o + op.S @ z
     out[pin] = q[pin]
     return out
+
+
+#: :func:`cap_window` keeps the command's acceleration within this share of Klipper's cap
+CAP_SHARE = 0.97
+
+
+def _cap_rows(c: np.ndarray, J: np.ndarray, dt_s: float, z_limit: float, a_plan: np.ndarray | None,
+              p_plan: np.ndarray | None = None):
+    """Directions, samples and limits of the cap rows of a window's command ``c`` (n, 3): on every
+    inner sample that moves, the nozzle's acceleration along its velocity (Klipper's trapezoid on the
+    segment) and across it (the centripetal junction rule), each within ``max_z_accel / |u_z|``
+    (:data:`CAP_SHARE` of it), or within the plan's own there (``a_plan`` (n, 3), m/s^2) where
+    that is more."""
+    n = len(c)
+    v = np.einsum("nij,nj->ni", J, np.gradient(c, axis=0)) / dt_s if J.ndim == 3 else np.gradient(c, axis=0) @ J.T / dt_s
+    sp = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(sp, 1e-15)[:, None]
+    cap = CAP_SHARE * z_limit / np.maximum(np.abs(u[:, 2]), 1e-6)
+    sel = np.nonzero((sp >= STILL_M_S) & (cap < 1000.0))[0]
+    sel = sel[(sel > 0) & (sel < n - 1)]
+    dirs, samp, lim = [], [], []
+    if a_plan is not None:  # where the plan itself runs past its own cap, so may the command
+        vp = np.gradient(p_plan, axis=0) / dt_s
+        spp = np.linalg.norm(vp, axis=1)
+        over = np.linalg.norm(a_plan, axis=1) * np.abs(vp[:, 2]) / np.maximum(spp, 1e-15) / (CAP_SHARE * z_limit)
+        cap = cap * np.maximum(over, 1.0)
+    for r in sel.tolist():
+        t = u[r]
+        a = np.array([1.0, 0.0, 0.0]) if abs(t[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        n1 = a - t * (t @ a)
+        n1 /= np.linalg.norm(n1)
+        n2 = np.cross(t, n1)
+        for d, share in ((t, 1.0), (n1, XY_SHARE), (n2, XY_SHARE)):
+            dirs.append(d)
+            samp.append(r)
+            lim.append(share * cap[r])
+    return np.array(dirs).reshape(-1, 3), np.array(samp, int), np.array(lim)
+
+
+def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, dt_s: float, z_limit_m_s2: float,
+               a_plan: np.ndarray | None = None, p_plan: np.ndarray | None = None, cfg: RepairConfig = RepairConfig(), cache: dict | None = None,
+               key=None, J_rows: np.ndarray | None = None) -> np.ndarray:
+    """The command ``c`` (n, 3) of a free window changed as little as the model's response allows so
+    that its nozzle acceleration keeps Klipper's delta cap (:func:`_cap_rows`); ``c`` itself where
+    it does already or the exact solve gives up."""
+    n = len(c)
+    pin = np.zeros(n, bool)
+    cfg1 = copy.copy(cfg)
+    object.__setattr__(cfg1, "knot_samples", 1)
+    op = _cached(cache, (key, n, "cap"), lambda: _operator(H, pin, J, dt_s, cfg1))
+    if op.nf == 0 or n < 3:
+        return c
+    Jr = J if J_rows is None else J_rows
+    dirs, samp, lim = _cap_rows(c, Jr, dt_s, z_limit_m_s2, a_plan, p_plan)
+    if not len(samp):
+        return c
+    DJ = (np.einsum("ri,rij->rj", dirs, Jr[samp]) if Jr.ndim == 3 else dirs @ Jr) / dt_s**2  # (R, 3)
+    c2 = np.diff(c, 2, axis=0)[samp - 1]
+    base = np.einsum("rj,rj->r", DJ, c2)
+    if np.all(np.abs(base) <= lim * 1.02):
+        return c
+    D2 = _second_difference(op.S)[samp]  # (R, nf)
+    A = np.hstack([DJ[:, j:j + 1] * D2 for j in range(3)])
+    # the window's ends: the correction's own acceleration there, within the cap of the command
+    zv0 = np.zeros(3 * op.nf)
+    zv = _active_set_qp(zv0, csr_matrix(A), -lim - base, lim - base,
+                        lambda r: cho_solve(op.factor, r, check_finite=False), 3 * op.nf, 1)
+    if zv is None or not np.all(np.isfinite(zv)) or float(np.max(np.abs(zv))) > MAX_BOUND_CHANGE_M:
+        return c
+    return c + op.S @ zv.reshape(3, op.nf).T

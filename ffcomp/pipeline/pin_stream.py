@@ -16,8 +16,8 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from ..compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
-from ..kinematics import jacobian
+from ..compensate.pin_repair import CAP_SHARE, STILL_M_S, PulseResponses, RepairConfig, cap_window, pinned_clusters, repair_window
+from ..kinematics import forward, jacobian
 from ..linalg3 import max_abs3
 
 __all__ = ["PinStats", "pin_repaired"]
@@ -30,6 +30,16 @@ class PinStats:
         self.windows = 0
         self.pinned_samples = 0
         self.max_change_m = 0.0
+        self.cap_windows = 0
+
+
+def _second_difference_rows(x: np.ndarray) -> np.ndarray:
+    """Second difference (n, 3) of ``x`` (n, 3), the ends copied from their neighbours."""
+    d = np.zeros_like(x)
+    if len(x) >= 3:
+        d[1:-1] = x[2:] - 2 * x[1:-1] + x[:-2]
+        d[0], d[-1] = d[1], d[-2]
+    return d
 
 
 def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
@@ -45,6 +55,37 @@ def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
             break
         out |= grow
     return out & ~seed
+
+
+#: a free command whose acceleration passes Klipper's delta cap by more than this share is repaired
+CAP_SLACK = 1.02
+
+
+def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, dt_s: float, z_limit: float) -> np.ndarray:
+    """Samples (n,) where the command ``q`` (n, 3) accelerates along or across its path harder than
+    Klipper's delta cap ``max_z_accel / |u_z|`` allows (``z_limit``, m/s^2) and harder than the
+    plan ``xyz_plan`` does there; the two end samples are never flagged."""
+    n = len(q)
+    out = np.zeros(n, bool)
+    if n < 3:
+        return out
+    p = forward(geom, q)
+    v = (p[2:] - p[:-2]) / (2 * dt_s)
+    a = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt_s**2
+    ap = (xyz_plan[2:] - 2 * xyz_plan[1:-1] + xyz_plan[:-2]) / dt_s**2
+    sp = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(sp, 1e-15)[:, None]
+    cap = CAP_SHARE * z_limit / np.maximum(np.abs(u[:, 2]), 1e-6) * CAP_SLACK
+    at = np.einsum("ij,ij->i", a, u)
+    an = np.linalg.norm(a - at[:, None] * u, axis=1)
+    # where the plan itself runs past its own cap (a move the firmware's limits bind), so may the command
+    vp = (xyz_plan[2:] - xyz_plan[:-2]) / (2 * dt_s)
+    spp = np.linalg.norm(vp, axis=1)
+    over = np.linalg.norm(ap, axis=1) * np.abs(vp[:, 2]) / np.maximum(spp, 1e-15) / (CAP_SHARE * z_limit)
+    cap = cap * np.maximum(over, 1.0)
+    bad = (sp >= STILL_M_S) & ((np.abs(at) > cap) | (an > cap))
+    out[1:-1] = bad
+    return out
 
 
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
@@ -81,12 +122,19 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     f = max(float(cfg.steep_accel_factor), 1e-9)
     cfg_steep = replace(cfg, accel_xy_m_s2=cfg.accel_xy_m_s2 / f, accel_z_m_s2=cfg.accel_z_m_s2 / f)
     repaired_upto = 0  # buffer rows before this belong to clusters already repaired
+    buf_cap = np.zeros(0, bool)  # free samples past Klipper's delta cap (cap_breaks)
+    cap_upto = 0  # buffer rows before this were checked
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
 
     def solve(final: bool) -> int:
         """Repair the clusters whose windows are complete; returns how many rows are final."""
-        nonlocal repaired_upto
+        nonlocal repaired_upto, cap_upto
         n = len(buf_q)
+        if z_limit_m_s2 is not None and n - cap_upto >= 3:
+            c0 = max(cap_upto - 1, 0)
+            br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], dt_s, z_limit_m_s2)
+            buf_cap[c0 + 1:n - 1] |= br[1:-1]
+            cap_upto = n - 1
         # stream boundaries (homing jumps): windows never cross them
         qref = buf_meta["q"]
         jumps = np.nonzero(max_abs3(np.diff(qref, axis=0)) > jump_m)[0] + 1 if n > 1 else []
@@ -124,10 +172,11 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 ext[:repaired_upto + M] = False
             pin_now = buf_pin | ext
         any_pin = pin_now | buf_zpin
+        marks = any_pin | (buf_cap & ~pin_now)
         for s0, s1 in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
-            if not any_pin[s0:s1].any():
+            if not marks[s0:s1].any():
                 continue
-            for a, b in pinned_clusters(any_pin[s0:s1], M):
+            for a, b in pinned_clusters(marks[s0:s1], M):
                 a, b = a + s0, b + s0
                 if not final and s1 == n and b + M > n:  # the window (or the run) is not all here yet
                     return max(min(safe, a - M), 0)
@@ -140,6 +189,16 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
+                if not any_pin[a:b].any():  # a free stretch past the delta cap
+                    xp = buf_meta["xyz"][w0:w1]
+                    a_plan = _second_difference_rows(xp) / dt_s**2
+                    new = cap_window(responses.at(pose), old, J, dt_s, z_limit_m_s2, a_plan, xp, cfg, cache=ops,
+                                     key=key, J_rows=jacobian(geom, xp))
+                    stats.cap_windows += 1
+                    stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
+                    buf_q[w0:w1] = new
+                    repaired_upto = b
+                    continue
                 steep = bool(np.any(buf_steep[w0:w1] & ~any_pin[w0:w1]))
                 printing = None
                 if cfg.print_weight != 1.0 and "e" in buf_meta:  # the plan extrudes while it moves in XY
@@ -168,6 +227,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         buf_zpin = np.concatenate([buf_zpin, np.asarray(zpin_fn(meta), bool) if zpin_fn is not None
                                    else np.zeros(len(pin), bool)])
         buf_qt = np.vstack([buf_qt, np.zeros((len(pin), 3))])
+        buf_cap = np.concatenate([buf_cap, np.zeros(len(pin), bool)])
         if buf_meta is None:
             buf_meta = {k: np.asarray(v) for k, v in meta.items()}
         else:
@@ -180,6 +240,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             out_q, out_meta = buf_q[:k].copy(), {key: v[:k] for key, v in buf_meta.items()}
             buf_q, buf_pin, buf_rest, buf_qt = buf_q[k:], buf_pin[k:], buf_rest[k:], buf_qt[k:]
             buf_next, buf_steep, buf_zpin = buf_next[k:], buf_steep[k:], buf_zpin[k:]
+            buf_cap = buf_cap[k:]
+            cap_upto = max(cap_upto - k, 0)
             buf_meta = {key: v[k:] for key, v in buf_meta.items()}
             repaired_upto = max(repaired_upto - k, 0)
             safe -= k
