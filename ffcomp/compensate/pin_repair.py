@@ -134,6 +134,7 @@ class RepairConfig:
     still_near_steep: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0
+    cap_windows: bool = True
 
 
 class PulseResponses:
@@ -562,19 +563,23 @@ def _cap_rows(c: np.ndarray, J: np.ndarray, dt_s: float, z_limit: float, a_plan:
 
 def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, dt_s: float, z_limit_m_s2: float,
                a_plan: np.ndarray | None = None, p_plan: np.ndarray | None = None, cfg: RepairConfig = RepairConfig(), cache: dict | None = None,
-               key=None, J_rows: np.ndarray | None = None) -> np.ndarray:
+               key=None, J_rows: np.ndarray | None = None, pin: np.ndarray | None = None) -> np.ndarray:
     """The command ``c`` (n, 3) of a free window changed as little as the model's response allows so
     that its nozzle acceleration keeps Klipper's delta cap (:func:`_cap_rows`); ``c`` itself where
     it does already or the exact solve gives up."""
     n = len(c)
-    pin = np.zeros(n, bool)
+    pin = np.zeros(n, bool) if pin is None else np.asarray(pin, bool)
     cfg1 = copy.copy(cfg)
     object.__setattr__(cfg1, "knot_samples", 1)
-    op = _cached(cache, (key, n, "cap"), lambda: _operator(H, pin, J, dt_s, cfg1))
+    op = _cached(cache, (key, n, "cap", np.packbits(pin).tobytes()), lambda: _operator(H, pin, J, dt_s, cfg1))
     if op.nf == 0 or n < 3:
         return c
     Jr = J if J_rows is None else J_rows
     dirs, samp, lim = _cap_rows(c, Jr, dt_s, z_limit_m_s2, a_plan, p_plan)
+    if pin.any() and len(samp):  # rows only where the free knots reach
+        touched = np.r_[False, ~pin[1:-1] | ~pin[:-2] | ~pin[2:], False]
+        keep = touched[samp]
+        dirs, samp, lim = dirs[keep], samp[keep], lim[keep]
     if not len(samp):
         return c
     DJ = (np.einsum("ri,rij->rj", dirs, Jr[samp]) if Jr.ndim == 3 else dirs @ Jr) / dt_s**2  # (R, 3)

@@ -130,7 +130,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         """Repair the clusters whose windows are complete; returns how many rows are final."""
         nonlocal repaired_upto, cap_upto
         n = len(buf_q)
-        if z_limit_m_s2 is not None and n - cap_upto >= 3:
+        if z_limit_m_s2 is not None and cfg.cap_windows and n - cap_upto >= 3:
             c0 = max(cap_upto - 1, 0)
             br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], dt_s, z_limit_m_s2)
             buf_cap[c0 + 1:n - 1] |= br[1:-1]
@@ -189,7 +189,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
-                if not any_pin[a:b].any():  # a free stretch past the delta cap
+                if not any_pin[a:b].any() and cfg.cap_windows:  # a free stretch past the delta cap
                     xp = buf_meta["xyz"][w0:w1]
                     a_plan = _second_difference_rows(xp) / dt_s**2
                     new = cap_window(responses.at(pose), old, J, dt_s, z_limit_m_s2, a_plan, xp, cfg, cache=ops,
@@ -209,6 +209,17 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                                     cfg_steep if steep else cfg, cache=ops, key=(key, steep),
                                     zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2,
                                     printing=printing)
+                if z_limit_m_s2 is not None and cfg.cap_windows and not buf_zpin[w0:w1].any():
+                    # what the repair leaves past the delta cap on its free samples: re-solved with
+                    # the pins held (every sample a knot)
+                    xp = buf_meta["xyz"][w0:w1]
+                    pw = pin_now[w0:w1]
+                    if np.any(cap_breaks(geom, new, xp, dt_s, z_limit_m_s2) & ~pw):
+                        new = cap_window(responses.at(pose), new, J, dt_s, z_limit_m_s2,
+                                         _second_difference_rows(xp) / dt_s**2, xp, cfg, cache=ops, key=key,
+                                         J_rows=jacobian(geom, xp), pin=pw)
+                        new[pw] = qtgt[w0:w1][pw]
+                        stats.cap_windows += 1
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(any_pin[a:b].sum())
