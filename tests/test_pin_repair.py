@@ -501,3 +501,46 @@ def test_standing_pins_never_reach_a_repaired_cluster(model):
     outs = list(pin_repaired(chunks(), lambda meta: pin[meta["k"]], model, DT, steep_fn=lambda meta: pin[meta["k"]]))
     got = np.concatenate([o[0] for o in outs])
     assert np.array_equal(got[pin], q[pin])
+
+
+def test_a_free_command_past_the_delta_cap_is_brought_within_it(model):
+    """Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``, along the segment and (its
+    centripetal junction rule) across it.  A plan braking at 6 m/s^2 along a line rising at
+    ``|u_z|`` = 0.4 keeps its cap (3 m/s^2 / 0.4 = 7.5); a correction that brakes x harder passes it
+    (the fidelity bench's z travel on other_delta: the command into an XZ reversal ran 0.93 ms off
+    the clock).  :func:`cap_breaks` flags those samples (and none of the plan's); :func:`cap_window`
+    brings them within the cap, by little, and changes nothing where the cap does not bind."""
+    geom = model.geometry
+    n = 80
+    t = np.arange(n) * DT
+    u = np.array([np.sqrt(1 - 0.4**2), 0.0, 0.4])
+    s = 0.5 * t - 0.5 * 6.0 * t**2  # 500 mm/s braking at 6 m/s^2 (at rest 3 ms past the window)
+    xp = np.array([-0.02, 0.0, 0.01]) + s[:, None] * u
+    bump = 30e-6 * np.exp(-((t - 0.04) / 0.004) ** 2)
+    xc = xp.copy()
+    xc[:, 0] += bump  # the correction: x ahead, then back (braking harder at its peak)
+    from ffcomp.kinematics import inverse
+    from ffcomp.pipeline.pin_stream import cap_breaks
+    from ffcomp.compensate.pin_repair import cap_window
+    qp, c = inverse(geom, xp), inverse(geom, xc)
+    z_limit = 3.0
+    assert not cap_breaks(geom, qp, xp, DT, z_limit).any()
+    br = cap_breaks(geom, c, xp, DT, z_limit)
+    assert br.sum() >= 3  # the case
+    pose = xp[n // 2]
+    H = PulseResponses(model, DT).at(pose)
+    J = jacobian(geom, pose)
+    a_plan = np.zeros_like(xp)
+    a_plan[1:-1] = np.diff(xp, 2, axis=0) / DT**2
+    a_plan[0], a_plan[-1] = a_plan[1], a_plan[-2]
+    out = cap_window(H, c, J, DT, z_limit, a_plan, xp, J_rows=jacobian(geom, xp))
+    assert not cap_breaks(geom, out, xp, DT, z_limit).any()
+    change = float(np.max(np.abs(out - c)))
+    assert 0.0 < change < 30e-6
+    # the acceleration along the path, measured by finite differences on the nozzle positions
+    from ffcomp.kinematics import forward
+    p = forward(geom, out)
+    a_t = np.abs((np.diff(p, 2, axis=0) / DT**2) @ u)
+    assert float(np.max(a_t)) <= z_limit / 0.4 * 1.01
+    # a cap that does not bind changes nothing
+    np.testing.assert_array_equal(cap_window(H, c, J, DT, 10 * z_limit, a_plan, xp, J_rows=jacobian(geom, xp)), c)

@@ -16,8 +16,9 @@ from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
-from ..compensate.pin_repair import CAP_SHARE, STILL_M_S, PulseResponses, RepairConfig, cap_window, pinned_clusters, repair_window
-from ..kinematics import forward, jacobian
+from ..compensate.delta_cap import DeltaCap, cap_breaks, cap_window
+from ..compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
+from ..kinematics import jacobian
 from ..linalg3 import max_abs3
 
 __all__ = ["PinStats", "pin_repaired"]
@@ -31,15 +32,6 @@ class PinStats:
         self.pinned_samples = 0
         self.max_change_m = 0.0
         self.cap_windows = 0
-
-
-def _second_difference_rows(x: np.ndarray) -> np.ndarray:
-    """Second difference (n, 3) of ``x`` (n, 3), the ends copied from their neighbours."""
-    d = np.zeros_like(x)
-    if len(x) >= 3:
-        d[1:-1] = x[2:] - 2 * x[1:-1] + x[:-2]
-        d[0], d[-1] = d[1], d[-2]
-    return d
 
 
 def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
@@ -57,42 +49,18 @@ def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
     return out & ~seed
 
 
-#: a free command whose acceleration passes Klipper's delta cap by more than this share is repaired
-CAP_SLACK = 1.02
-
-
-def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, dt_s: float, z_limit: float) -> np.ndarray:
-    """Samples (n,) where the command ``q`` (n, 3) accelerates along or across its path harder than
-    Klipper's delta cap ``max_z_accel / |u_z|`` allows (``z_limit``, m/s^2) and harder than the
-    plan ``xyz_plan`` does there; the two end samples are never flagged."""
-    n = len(q)
-    out = np.zeros(n, bool)
-    if n < 3:
-        return out
-    p = forward(geom, q)
-    v = (p[2:] - p[:-2]) / (2 * dt_s)
-    a = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt_s**2
-    ap = (xyz_plan[2:] - 2 * xyz_plan[1:-1] + xyz_plan[:-2]) / dt_s**2
-    sp = np.linalg.norm(v, axis=1)
-    u = v / np.maximum(sp, 1e-15)[:, None]
-    cap = CAP_SHARE * z_limit / np.maximum(np.abs(u[:, 2]), 1e-6) * CAP_SLACK
-    at = np.einsum("ij,ij->i", a, u)
-    an = np.linalg.norm(a - at[:, None] * u, axis=1)
-    # where the plan itself runs past its own cap (a move the firmware's limits bind), so may the command
-    vp = (xyz_plan[2:] - xyz_plan[:-2]) / (2 * dt_s)
-    spp = np.linalg.norm(vp, axis=1)
-    over = np.linalg.norm(ap, axis=1) * np.abs(vp[:, 2]) / np.maximum(spp, 1e-15) / (CAP_SHARE * z_limit)
-    cap = cap * np.maximum(over, 1.0)
-    bad = (sp >= STILL_M_S) & ((np.abs(at) > cap) | (an > cap))
-    out[1:-1] = bad
-    return out
+#: the cap pass also runs on what a pin window's repair leaves past the caps (its pins held)
+CAP_AFTER_PINS = True
+#: how many times a window's cap pass runs (each linearised about the last one's command)
+CAP_PASSES = 3
 
 
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
                  cfg: RepairConfig = RepairConfig(), stats: PinStats | None = None, jump_m: float = 2e-3,
                  steep_fn: Callable[[dict], np.ndarray] | None = None,
                  zpin_fn: Callable[[dict], np.ndarray] | None = None,
-                 z_limit_m_s2: float | None = None) -> Iterator[tuple[np.ndarray, dict]]:
+                 z_limit_m_s2: float | None = None, cap: DeltaCap | None = None
+                 ) -> Iterator[tuple[np.ndarray, dict]]:
     """Yield ``(q_cmd, meta)`` chunks with the pinned samples held on the plan (``meta["q"]``).
 
     ``pin_fn(meta)`` gives the pin mask of a chunk's samples when the chunk arrives; ``steep_fn(meta)``
@@ -126,13 +94,30 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     cap_upto = 0  # buffer rows before this were checked
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
 
+    def capped(q: np.ndarray, xp: np.ndarray, pw: np.ndarray, pose, key, J) -> np.ndarray:
+        """``q`` (a window's command; ``pw`` its pins, held) brought within Klipper's delta cap where
+        it passes it (:func:`cap_breaks`): :func:`cap_window`, again on its result (its rows are
+        linearised about the command) up to :data:`CAP_PASSES` times."""
+        jr = None
+        for _ in range(CAP_PASSES):
+            if not np.any(cap_breaks(geom, q, xp, cap) & ~pw):
+                break
+            if jr is None:
+                jr = jacobian(geom, xp)
+            new = cap_window(responses.at(pose), q, J, jr, xp, cap, cfg, pin=pw, cache=ops, key=key)
+            stats.cap_windows += 1
+            if new is q:
+                break
+            q = new
+        return q
+
     def solve(final: bool) -> int:
         """Repair the clusters whose windows are complete; returns how many rows are final."""
         nonlocal repaired_upto, cap_upto
         n = len(buf_q)
-        if z_limit_m_s2 is not None and cfg.cap_windows and n - cap_upto >= 3:
+        if cap is not None and cfg.cap_windows and n - cap_upto >= 3:
             c0 = max(cap_upto - 1, 0)
-            br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], dt_s, z_limit_m_s2)
+            br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], cap)
             buf_cap[c0 + 1:n - 1] |= br[1:-1]
             cap_upto = n - 1
         # stream boundaries (homing jumps): windows never cross them
@@ -190,11 +175,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
                 if not any_pin[a:b].any() and cfg.cap_windows:  # a free stretch past the delta cap
-                    xp = buf_meta["xyz"][w0:w1]
-                    a_plan = _second_difference_rows(xp) / dt_s**2
-                    new = cap_window(responses.at(pose), old, J, dt_s, z_limit_m_s2, a_plan, xp, cfg, cache=ops,
-                                     key=key, J_rows=jacobian(geom, xp))
-                    stats.cap_windows += 1
+                    new = capped(old, buf_meta["xyz"][w0:w1], np.zeros(w1 - w0, bool), pose, key, J)
                     stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                     buf_q[w0:w1] = new
                     repaired_upto = b
@@ -209,17 +190,10 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                                     cfg_steep if steep else cfg, cache=ops, key=(key, steep),
                                     zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2,
                                     printing=printing)
-                if z_limit_m_s2 is not None and cfg.cap_windows and not buf_zpin[w0:w1].any():
+                if cap is not None and cfg.cap_windows and CAP_AFTER_PINS and not buf_zpin[w0:w1].any():
                     # what the repair leaves past the delta cap on its free samples: re-solved with
                     # the pins held (every sample a knot)
-                    xp = buf_meta["xyz"][w0:w1]
-                    pw = pin_now[w0:w1]
-                    if np.any(cap_breaks(geom, new, xp, dt_s, z_limit_m_s2) & ~pw):
-                        new = cap_window(responses.at(pose), new, J, dt_s, z_limit_m_s2,
-                                         _second_difference_rows(xp) / dt_s**2, xp, cfg, cache=ops, key=key,
-                                         J_rows=jacobian(geom, xp), pin=pw)
-                        new[pw] = qtgt[w0:w1][pw]
-                        stats.cap_windows += 1
+                    new = capped(new, buf_meta["xyz"][w0:w1], pin_now[w0:w1], pose, key, J)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(any_pin[a:b].sum())

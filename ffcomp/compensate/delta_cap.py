@@ -1,0 +1,175 @@
+"""Klipper's delta caps on a written command, and the smallest change of the command that keeps them.
+
+Klipper plans every segment of a delta at ``min(ACCEL, max_z_accel * d/|dz|)``: along the segment
+(its trapezoid) and, through its junction rules, across it (the centripetal rule
+``v^2 <= a d / tan``, and the square-corner rule ``v^2 <= R_jd * junction_deviation * a``, which on
+dense samples bounds the turn per segment: ``a_n <= sqrt(8 junction_deviation a) / dt`` for small
+angles).  Where the z rule makes ``a`` small (a steep segment), a compensated command that brakes,
+or bends, harder than that runs late: the fidelity bench's z travel on other_delta (max_z_accel
+3,000 mm/s^2, ACCEL 10,000) ran 0.93 ms off the clock into an XZ reversal, where the correction
+turned the command steeper than the plan while it braked at the plan's 10,000 mm/s^2.
+
+:func:`cap_breaks` finds such samples; :func:`cap_window` changes a window's command as little as the
+model's response allows (the pin repair's least squares, :mod:`ffcomp.compensate.pin_repair`, every
+sample a knot) so that its nozzle acceleration keeps the caps, with the plan's own acceleration as
+the licence where the plan itself runs past them.  Pure numeric kernels: SI units throughout.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import cho_solve
+from scipy.sparse import csr_matrix
+
+from ..kinematics import forward
+from .pin_repair import MAX_BOUND_CHANGE_M, STILL_M_S, XY_SHARE, RepairConfig, _cached, _operator, _second_difference
+from .stream import _active_set_qp
+
+__all__ = ["DeltaCap", "cap_breaks", "cap_window", "CAP_SHARE", "CAP_SLACK"]
+
+#: :func:`cap_window` keeps the command within this share of the caps
+CAP_SHARE = 0.97
+#: :func:`cap_breaks` flags a sample past this multiple of :data:`CAP_SHARE` of a cap
+CAP_SLACK = 1.02
+
+
+@dataclass(frozen=True)
+class DeltaCap:
+    """The firmware numbers of the caps (SI).
+
+    max_z_accel_m_s2 : ``[printer] max_z_accel``
+    accel_m_s2 : the run-time ACCEL the output sets
+    junction_deviation_m : Klipper's ``junction_deviation`` at that ACCEL (from square_corner_velocity)
+    dt_s : the written segments' time (the sample time)
+    """
+
+    max_z_accel_m_s2: float
+    accel_m_s2: float
+    junction_deviation_m: float
+    dt_s: float
+
+    def limits(self, u_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(a_seg, along, across)`` for unit directions with z component ``u_z`` (n,): the
+        segment's acceleration, and the largest nozzle acceleration along and across it, m/s^2."""
+        a_seg = np.minimum(self.accel_m_s2, self.max_z_accel_m_s2 / np.maximum(np.abs(u_z), 1e-9))
+        across = np.minimum(a_seg, np.sqrt(8.0 * self.junction_deviation_m * a_seg) / self.dt_s)
+        return a_seg, a_seg, across
+
+
+def _split(a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Acceleration ``a`` (n, 3) along unit ``u`` (n, 3) (signed) and across it (magnitude)."""
+    at = np.einsum("ij,ij->i", a, u)
+    return at, np.linalg.norm(a - at[:, None] * u, axis=1)
+
+
+def _central(p: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Speed (n,), unit velocity (n, 3) and acceleration (n, 3) of positions ``p`` (n, 3) by central
+    differences (the ends copied from their neighbours)."""
+    v = np.gradient(p, axis=0) / dt_s
+    a = np.zeros_like(p)
+    if len(p) >= 3:
+        a[1:-1] = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt_s**2
+        a[0], a[-1] = a[1], a[-2]
+    sp = np.linalg.norm(v, axis=1)
+    return sp, v / np.maximum(sp, 1e-15)[:, None], a
+
+
+def _licence(cap: DeltaCap, xyz_plan: np.ndarray) -> np.ndarray:
+    """Per sample, how far the plan itself runs past its own caps (at least 1): the command may too."""
+    sp, u, a = _central(xyz_plan, cap.dt_s)
+    a_seg, along, across = cap.limits(u[:, 2])
+    at, an = _split(a, u)
+    over = np.maximum(np.abs(at) / along, an / across) / CAP_SHARE
+    return np.where(sp >= STILL_M_S, np.maximum(over, 1.0), 1.0)
+
+
+def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap) -> np.ndarray:
+    """Samples (n,) where the command ``q`` (n, 3, carriage heights, m) accelerates along or across
+    its path past :data:`CAP_SLACK` times :data:`CAP_SHARE` of the caps, on steep segments (where
+    ``max_z_accel`` binds more than ACCEL) that move, and past what the plan ``xyz_plan`` (n, 3,
+    m) takes there; never the two end samples."""
+    n = len(q)
+    out = np.zeros(n, bool)
+    if n < 3:
+        return out
+    sp, u, a = _central(forward(geom, q), cap.dt_s)
+    a_seg, along, across = cap.limits(u[:, 2])
+    at, an = _split(a, u)
+    k = CAP_SHARE * CAP_SLACK * _licence(cap, xyz_plan)
+    out[1:-1] = ((sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
+                 & ((np.abs(at) > k * along) | (an > k * across)))[1:-1]
+    return out
+
+
+def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap):
+    """Directions (R, 3), samples (R,) and limits (R,) of the cap rows of a window's command ``c``:
+    on every inner sample of a steep segment that moves, the nozzle acceleration along the command's
+    velocity and along two directions across it (each within ``1/sqrt(2)`` of the cap across: a box
+    inside its disk).  ``J`` (n, 3, 3): the Jacobian per sample (the rows are linear in ``c``)."""
+    n = len(c)
+    v = np.einsum("nij,nj->ni", J, np.gradient(c, axis=0)) / cap.dt_s
+    sp = np.linalg.norm(v, axis=1)
+    u = v / np.maximum(sp, 1e-15)[:, None]
+    a_seg, along, across = cap.limits(u[:, 2])
+    lic = CAP_SHARE * _licence(cap, xyz_plan)
+    sel = np.nonzero((sp >= STILL_M_S) & (a_seg < cap.accel_m_s2))[0]
+    sel = sel[(sel > 0) & (sel < n - 1)]
+    t = u[sel]
+    # two unit normals per row: t x e (e the axis least along t), then t x n1
+    e = np.zeros_like(t)
+    e[np.arange(len(t)), np.argmin(np.abs(t), axis=1)] = 1.0
+    n1 = np.cross(t, e)
+    n1 /= np.linalg.norm(n1, axis=1, keepdims=True)
+    n2 = np.cross(t, n1)
+    dirs = np.concatenate([t, n1, n2])
+    samp = np.tile(sel, 3)
+    lim = np.concatenate([along[sel], XY_SHARE * across[sel], XY_SHARE * across[sel]]) * np.tile(lic[sel], 3)
+    return dirs, samp, lim
+
+
+def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, J_rows: np.ndarray, xyz_plan: np.ndarray,
+               cap: DeltaCap, cfg: RepairConfig = RepairConfig(), pin: np.ndarray | None = None,
+               cache: dict | None = None, key=None) -> np.ndarray:
+    """The window's command ``c`` (n, 3, carriage heights, m) changed as little as the model's
+    response allows so that its nozzle acceleration keeps the caps (:func:`_rows`); ``c`` itself
+    where it does already or the exact solve gives up.
+
+    ``H`` (L, 3, 3) and ``J`` (3, 3): the pulse response and Jacobian at the window's pose cell (the
+    objective's, as in :func:`~ffcomp.compensate.pin_repair.repair_window`); ``J_rows`` (n, 3, 3):
+    the Jacobian at each sample of the plan ``xyz_plan`` (n, 3) (the rows'); ``pin`` (n,), optional:
+    samples held as they are (a pin window's, repaired already).  Every free sample is a knot: a
+    coarser basis cannot change the acceleration between its knots.  ``cache``/``key``: the
+    factorised normal equations per pose cell and pin pattern.  The correction vanishes beyond
+    the window.
+    """
+    n = len(c)
+    if n < 3:
+        return c
+    pin = np.zeros(n, bool) if pin is None else np.asarray(pin, bool)
+    cfg1 = copy.copy(cfg)
+    object.__setattr__(cfg1, "knot_samples", 1)
+    dt_s = cap.dt_s
+    op = _cached(cache, (key, n, "cap", np.packbits(pin).tobytes()), lambda: _operator(H, pin, J, dt_s, cfg1))
+    if op.nf == 0:
+        return c
+    dirs, samp, lim = _rows(c, J_rows, xyz_plan, cap)
+    if pin.any() and len(samp):  # rows only where the free knots reach
+        touched = np.r_[False, ~pin[1:-1] | ~pin[:-2] | ~pin[2:], False]
+        keep = touched[samp]
+        dirs, samp, lim = dirs[keep], samp[keep], lim[keep]
+    if not len(samp):
+        return c
+    DJ = np.einsum("ri,rij->rj", dirs, J_rows[samp]) / dt_s**2  # (R, 3): per carriage acceleration
+    base = np.einsum("rj,rj->r", DJ, np.diff(c, 2, axis=0)[samp - 1])
+    if np.all(np.abs(base) <= lim):
+        return c
+    D2 = _second_difference(op.S)[samp]  # (R, nf)
+    A = np.hstack([DJ[:, j:j + 1] * D2 for j in range(3)])  # carriage-major
+    zv = _active_set_qp(np.zeros(3 * op.nf), csr_matrix(A), -lim - base, lim - base,
+                        lambda r: cho_solve(op.factor, r, check_finite=False), 3 * op.nf, 1)
+    if zv is None or not np.all(np.isfinite(zv)) or float(np.max(np.abs(zv))) > MAX_BOUND_CHANGE_M:
+        return c
+    return c + op.S @ zv.reshape(3, op.nf).T
