@@ -519,9 +519,9 @@ def test_a_free_command_past_the_delta_cap_is_brought_within_it(model):
     bump = 30e-6 * np.exp(-((t - 0.04) / 0.004) ** 2)
     xc = xp.copy()
     xc[:, 0] += bump  # the correction: x ahead, then back (braking harder at its peak)
+    from ffcomp.compensate.pin_repair import cap_window
     from ffcomp.kinematics import inverse
     from ffcomp.pipeline.pin_stream import cap_breaks
-    from ffcomp.compensate.pin_repair import cap_window
     qp, c = inverse(geom, xp), inverse(geom, xc)
     z_limit = 3.0
     assert not cap_breaks(geom, qp, xp, DT, z_limit).any()

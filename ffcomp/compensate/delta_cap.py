@@ -34,6 +34,25 @@ __all__ = ["DeltaCap", "cap_breaks", "cap_window", "CAP_SHARE", "CAP_SLACK"]
 CAP_SHARE = 0.97
 #: :func:`cap_breaks` flags a sample past this multiple of :data:`CAP_SHARE` of a cap
 CAP_SLACK = 1.02
+#: the cap across the path is this much lower where a pinned run meets the free command: the writer
+#: ends a pinned run on the plan's corner, at its time, so a short segment meets the first free one
+#: there, and Klipper's centripetal rule takes the shorter segment's length (a random file's free
+#: command bent 1.4 degrees off a pinned z-hop, 2 um, and the firmware braked it from 84 to 76 mm/s)
+EDGE_ACROSS_SHARE = 0.5
+
+
+def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, share)``: the samples whose acceleration moves with the free ones (free, or pinned
+    next to a free one), and the share (n,) of the cap across the path at each sample
+    (:data:`EDGE_ACROSS_SHARE` where a pinned run meets a free one)."""
+    if pin is None or not np.any(pin):
+        return np.ones(n, bool), np.ones(n)
+    pin = np.asarray(pin, bool)
+    prev, nxt = np.r_[pin[:1], pin[:-1]], np.r_[pin[1:], pin[-1:]]
+    free_near = ~prev | ~nxt
+    rows = ~pin | free_near
+    edge = (pin & free_near) | (~pin & (prev | nxt))
+    return rows, np.where(edge, EDGE_ACROSS_SHARE, 1.0)
 
 
 @dataclass(frozen=True)
@@ -86,36 +105,42 @@ def _licence(cap: DeltaCap, xyz_plan: np.ndarray) -> np.ndarray:
     return np.where(sp >= STILL_M_S, np.maximum(over, 1.0), 1.0)
 
 
-def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap) -> np.ndarray:
+def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np.ndarray | None = None
+               ) -> np.ndarray:
     """Samples (n,) where the command ``q`` (n, 3, carriage heights, m) accelerates along or across
     its path past :data:`CAP_SLACK` times :data:`CAP_SHARE` of the caps, on steep segments (where
     ``max_z_accel`` binds more than ACCEL) that move, and past what the plan ``xyz_plan`` (n, 3,
-    m) takes there; never the two end samples."""
+    m) takes there; never the two end samples.  ``pin`` (n,), optional: samples held (a pin
+    window's); only those next to a free one are judged, at :data:`EDGE_ACROSS_SHARE` across where a
+    pinned run meets the free command."""
     n = len(q)
     out = np.zeros(n, bool)
     if n < 3:
         return out
+    rows, share = _edges(pin, n)
     sp, u, a = _central(forward(geom, q), cap.dt_s)
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
     k = CAP_SHARE * CAP_SLACK * _licence(cap, xyz_plan)
-    out[1:-1] = ((sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
-                 & ((np.abs(at) > k * along) | (an > k * across)))[1:-1]
+    out[1:-1] = (rows & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
+                 & ((np.abs(at) > k * along) | (an > k * share * across)))[1:-1]
     return out
 
 
-def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap):
+def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np.ndarray | None = None):
     """Directions (R, 3), samples (R,) and limits (R,) of the cap rows of a window's command ``c``:
     on every inner sample of a steep segment that moves, the nozzle acceleration along the command's
     velocity and along two directions across it (each within ``1/sqrt(2)`` of the cap across: a box
-    inside its disk).  ``J`` (n, 3, 3): the Jacobian per sample (the rows are linear in ``c``)."""
+    inside its disk).  ``J`` (n, 3, 3): the Jacobian per sample (the rows are linear in ``c``);
+    ``pin``: as for :func:`cap_breaks`."""
     n = len(c)
+    rows, share = _edges(pin, n)
     v = np.einsum("nij,nj->ni", J, np.gradient(c, axis=0)) / cap.dt_s
     sp = np.linalg.norm(v, axis=1)
     u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     lic = CAP_SHARE * _licence(cap, xyz_plan)
-    sel = np.nonzero((sp >= STILL_M_S) & (a_seg < cap.accel_m_s2))[0]
+    sel = np.nonzero(rows & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2))[0]
     sel = sel[(sel > 0) & (sel < n - 1)]
     t = u[sel]
     # two unit normals per row: t x e (e the axis least along t), then t x n1
@@ -126,7 +151,8 @@ def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap):
     n2 = np.cross(t, n1)
     dirs = np.concatenate([t, n1, n2])
     samp = np.tile(sel, 3)
-    lim = np.concatenate([along[sel], XY_SHARE * across[sel], XY_SHARE * across[sel]]) * np.tile(lic[sel], 3)
+    ac = XY_SHARE * share[sel] * across[sel]
+    lim = np.concatenate([along[sel], ac, ac]) * np.tile(lic[sel], 3)
     return dirs, samp, lim
 
 
@@ -155,11 +181,7 @@ def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, J_rows: np.ndarray, 
     op = _cached(cache, (key, n, "cap", np.packbits(pin).tobytes()), lambda: _operator(H, pin, J, dt_s, cfg1))
     if op.nf == 0:
         return c
-    dirs, samp, lim = _rows(c, J_rows, xyz_plan, cap)
-    if pin.any() and len(samp):  # rows only where the free knots reach
-        touched = np.r_[False, ~pin[1:-1] | ~pin[:-2] | ~pin[2:], False]
-        keep = touched[samp]
-        dirs, samp, lim = dirs[keep], samp[keep], lim[keep]
+    dirs, samp, lim = _rows(c, J_rows, xyz_plan, cap, pin)
     if not len(samp):
         return c
     DJ = np.einsum("ri,rij->rj", dirs, J_rows[samp]) / dt_s**2  # (R, 3): per carriage acceleration

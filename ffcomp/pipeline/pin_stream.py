@@ -100,7 +100,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         linearised about the command) up to :data:`CAP_PASSES` times."""
         jr = None
         for _ in range(CAP_PASSES):
-            if not np.any(cap_breaks(geom, q, xp, cap) & ~pw):
+            if not np.any(cap_breaks(geom, q, xp, cap, pw)):
                 break
             if jr is None:
                 jr = jacobian(geom, xp)
