@@ -51,7 +51,7 @@ def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
     prev, nxt = np.r_[pin[:1], pin[:-1]], np.r_[pin[1:], pin[-1:]]
     free_near = ~prev | ~nxt
     rows = ~pin | free_near
-    edge = (pin & free_near) | (~pin & (prev | nxt))
+    edge = (pin & ~nxt) | (~pin & prev)  # where a pinned run ends (the writer's short segment)
     return rows, np.where(edge, EDGE_ACROSS_SHARE, 1.0)
 
 
