@@ -24,7 +24,8 @@ import numpy as np
 from scipy.linalg import cho_solve
 from scipy.sparse import csr_matrix
 
-from ..kinematics import forward
+from ..kinematics import forward, jacobian
+from ..linalg3 import sq_norm3
 from .pin_repair import MAX_BOUND_CHANGE_M, STILL_M_S, XY_SHARE, RepairConfig, _cached, _operator, _second_difference
 from .stream import _active_set_qp
 
@@ -39,6 +40,16 @@ CAP_SLACK = 1.02
 #: there, and Klipper's centripetal rule takes the shorter segment's length (a random file's free
 #: command bent 1.4 degrees off a pinned z-hop, 2 um, and the firmware braked it from 84 to 76 mm/s)
 EDGE_ACROSS_SHARE = 0.5
+
+
+def jacobian_bound(geom, margin: float = 1.5, rings: int = 24, spokes: int = 72) -> float:
+    """``margin`` times the largest singular value of the delta's Jacobian over its print disc (J
+    depends on x and y only), on a polar grid of ``rings`` x ``spokes`` points and the centre."""
+    r = geom.print_radius_m * np.linspace(0.0, 1.0, rings + 1)
+    ang = np.linspace(0.0, 2 * np.pi, spokes, endpoint=False)
+    rr, aa = np.meshgrid(r, ang)
+    xyz = np.c_[(rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(), np.zeros(rr.size)]
+    return margin * float(np.max(np.linalg.norm(jacobian(geom, xyz), ord=2, axis=(1, 2))))
 
 
 def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -69,6 +80,9 @@ class DeltaCap:
     accel_m_s2: float
     junction_deviation_m: float
     dt_s: float
+    #: an upper bound of ``|J|`` (the largest singular value of dX/dq) over the print disc:
+    #: :func:`cap_breaks`'s cheap screen of the samples that cannot break a cap (inf: no screen)
+    jacobian_bound: float = float("inf")
 
     def limits(self, u_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(a_seg, along, across)`` for unit directions with z component ``u_z`` (n,): the
@@ -105,25 +119,77 @@ def _licence(cap: DeltaCap, xyz_plan: np.ndarray) -> np.ndarray:
     return np.where(sp >= STILL_M_S, np.maximum(over, 1.0), 1.0)
 
 
-def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np.ndarray | None = None
-               ) -> np.ndarray:
+def _screen(q: np.ndarray, q_plan: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap) -> np.ndarray:
+    """Samples (n,) that may break a cap, from cheap bounds: the command's nozzle velocity and
+    acceleration differ from the plan's by at most ``jacobian_bound`` times the carriage differences'
+    (to first order in the correction, micrometres).  A break needs ``|a| |v_z| > mza |v|`` (along, or
+    across at the centripetal cap) or ``|a| > sqrt(8 jd mza |v|/|v_z|) / dt`` (the square-corner cap).
+    Columns, not reductions over the axis of three (:mod:`ffcomp.linalg3`): this runs on every sample."""
+    n = len(q)
+    out = np.zeros(n, bool)
+    if n < 3:
+        return out
+    dt, jb = cap.dt_s, cap.jacobian_bound
+    d1 = np.diff(xyz_plan, axis=0)
+    v2 = sq_norm3(d1[1:] + d1[:-1]) * (0.5 / dt) ** 2  # the plan's speed^2, interior samples
+    vz = np.abs(d1[1:, 2] + d1[:-1, 2]) * (0.5 / dt)
+    a = np.sqrt(sq_norm3(d1[1:] - d1[:-1])) / dt**2
+    e1 = np.diff(q - q_plan, axis=0)
+    dv = jb * np.sqrt(sq_norm3(e1[1:] + e1[:-1])) * (0.5 / dt)
+    a += jb * np.sqrt(sq_norm3(e1[1:] - e1[:-1])) / dt**2
+    sp = np.sqrt(v2)
+    sp_lo = np.maximum(sp - dv, 0.0)
+    vz += dv
+    mza = 0.9 * CAP_SHARE * cap.max_z_accel_m_s2  # (0.9: room for the second-order terms)
+    ratio = sp_lo / np.maximum(vz, 1e-15)  # at most 1/|u_z|
+    lim = np.minimum(mza * ratio, np.sqrt(8.0 * cap.junction_deviation_m * mza * ratio) / dt)
+    out[1:-1] = (vz * cap.accel_m_s2 > mza * sp_lo) & (sp + dv >= STILL_M_S) & (a > lim)
+    return out
+
+
+def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np.ndarray | None = None,
+               q_plan: np.ndarray | None = None) -> np.ndarray:
     """Samples (n,) where the command ``q`` (n, 3, carriage heights, m) accelerates along or across
     its path past :data:`CAP_SLACK` times :data:`CAP_SHARE` of the caps, on steep segments (where
     ``max_z_accel`` binds more than ACCEL) that move, and past what the plan ``xyz_plan`` (n, 3,
     m) takes there; never the two end samples.  ``pin`` (n,), optional: samples held (a pin
     window's); only those next to a free one are judged, at :data:`EDGE_ACROSS_SHARE` across where a
-    pinned run meets the free command."""
+    pinned run meets the free command.  ``q_plan`` (n, 3), optional: the plan's carriage heights;
+    with a finite ``cap.jacobian_bound`` only the samples a cheap screen cannot clear are judged
+    exactly (the nozzle positions by forward kinematics cost most of the check)."""
     n = len(q)
     out = np.zeros(n, bool)
     if n < 3:
         return out
     rows, share = _edges(pin, n)
-    sp, u, a = _central(forward(geom, q), cap.dt_s)
+    at_idx = np.arange(n)
+    if q_plan is not None and np.isfinite(cap.jacobian_bound):
+        cand = _screen(q, q_plan, xyz_plan, cap) & rows
+        cand[0] = cand[-1] = False
+        if not cand.any():
+            return out
+        c = np.nonzero(cand)[0]
+        if c.size < n // 3:  # the candidates and their neighbours only
+            at_idx = np.unique(np.r_[c - 1, c, c + 1])
+    p = forward(geom, q[at_idx])
+    if at_idx.size == n:
+        sp, u, a = _central(p, cap.dt_s)
+        judged = at_idx
+    else:  # central differences at the candidates from their own neighbours
+        judged = c
+        i0, i1, i2 = (np.searchsorted(at_idx, c + d) for d in (-1, 0, 1))
+        v = (p[i2] - p[i0]) / (2 * cap.dt_s)
+        a = (p[i2] - 2 * p[i1] + p[i0]) / cap.dt_s**2
+        sp = np.linalg.norm(v, axis=1)
+        u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
-    k = CAP_SHARE * CAP_SLACK * _licence(cap, xyz_plan)
-    out[1:-1] = (rows & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
-                 & ((np.abs(at) > k * along) | (an > k * share * across)))[1:-1]
+    lic = _licence(cap, xyz_plan)[judged]
+    k = CAP_SHARE * CAP_SLACK * lic
+    bad = (rows[judged] & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
+           & ((np.abs(at) > k * along) | (an > k * share[judged] * across)))
+    out[judged] = bad
+    out[0] = out[-1] = False
     return out
 
 

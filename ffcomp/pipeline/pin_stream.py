@@ -94,13 +94,13 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     cap_upto = 0  # buffer rows before this were checked
     sizes: deque[int] = deque()  # lengths of the chunks in the buffer
 
-    def capped(q: np.ndarray, xp: np.ndarray, pw: np.ndarray, pose, key, J) -> np.ndarray:
+    def capped(q: np.ndarray, xp: np.ndarray, qp: np.ndarray, pw: np.ndarray, pose, key, J) -> np.ndarray:
         """``q`` (a window's command; ``pw`` its pins, held) brought within Klipper's delta cap where
         it passes it (:func:`cap_breaks`): :func:`cap_window`, again on its result (its rows are
         linearised about the command) up to :data:`CAP_PASSES` times."""
         jr = None
         for _ in range(CAP_PASSES):
-            if not np.any(cap_breaks(geom, q, xp, cap, pw)):
+            if not np.any(cap_breaks(geom, q, xp, cap, pw, q_plan=qp)):
                 break
             if jr is None:
                 jr = jacobian(geom, xp)
@@ -117,7 +117,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         n = len(buf_q)
         if cap is not None and cfg.cap_windows and n - cap_upto >= 3:
             c0 = max(cap_upto - 1, 0)
-            br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], cap)
+            br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], cap, q_plan=buf_meta["q"][c0:])
             buf_cap[c0 + 1:n - 1] |= br[1:-1]
             cap_upto = n - 1
         # stream boundaries (homing jumps): windows never cross them
@@ -175,7 +175,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
                 if not any_pin[a:b].any() and cfg.cap_windows:  # a free stretch past the delta cap
-                    new = capped(old, buf_meta["xyz"][w0:w1], np.zeros(w1 - w0, bool), pose, key, J)
+                    new = capped(old, buf_meta["xyz"][w0:w1], buf_meta["q"][w0:w1], np.zeros(w1 - w0, bool), pose,
+                                 key, J)
                     stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                     buf_q[w0:w1] = new
                     repaired_upto = b
@@ -193,7 +194,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if cap is not None and cfg.cap_windows and CAP_AFTER_PINS and not buf_zpin[w0:w1].any():
                     # what the repair leaves past the delta cap on its free samples: re-solved with
                     # the pins held (every sample a knot)
-                    new = capped(new, buf_meta["xyz"][w0:w1], pin_now[w0:w1], pose, key, J)
+                    new = capped(new, buf_meta["xyz"][w0:w1], buf_meta["q"][w0:w1], pin_now[w0:w1], pose, key, J)
                 stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                 stats.windows += 1
                 stats.pinned_samples += int(any_pin[a:b].sum())
