@@ -110,9 +110,19 @@ def _central(p: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.nda
     return sp, v / np.maximum(sp, 1e-15)[:, None], a
 
 
-def _licence(cap: DeltaCap, xyz_plan: np.ndarray) -> np.ndarray:
-    """Per sample, how far the plan itself runs past its own caps (at least 1): the command may too."""
-    sp, u, a = _central(xyz_plan, cap.dt_s)
+def _licence(cap: DeltaCap, xyz_plan: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
+    """Per sample (or at the samples ``idx``), how far the plan itself runs past its own caps (at
+    least 1): the command may too."""
+    n = len(xyz_plan)
+    if idx is None:
+        sp, u, a = _central(xyz_plan, cap.dt_s)
+    else:  # central differences at idx (one-sided at the ends, as _central)
+        lo, hi = np.maximum(idx - 1, 0), np.minimum(idx + 1, n - 1)
+        v = (xyz_plan[hi] - xyz_plan[lo]) / (np.maximum(hi - lo, 1) * cap.dt_s)[:, None]
+        c = np.clip(idx, 1, max(n - 2, 1))
+        a = (xyz_plan[np.minimum(c + 1, n - 1)] - 2 * xyz_plan[c] + xyz_plan[c - 1]) / cap.dt_s**2
+        sp = np.linalg.norm(v, axis=1)
+        u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
     over = np.maximum(np.abs(at) / along, an / across) / CAP_SHARE
@@ -184,7 +194,7 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
         u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
-    lic = _licence(cap, xyz_plan)[judged]
+    lic = _licence(cap, xyz_plan, judged)
     k = CAP_SHARE * CAP_SLACK * lic
     bad = (rows[judged] & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
            & ((np.abs(at) > k * along) | (an > k * share[judged] * across)))
