@@ -42,14 +42,22 @@ CAP_SLACK = 1.02
 EDGE_ACROSS_SHARE = 0.5
 
 
-def jacobian_bound(geom, margin: float = 1.5, rings: int = 24, spokes: int = 72) -> float:
-    """``margin`` times the largest singular value of the delta's Jacobian over its print disc (J
-    depends on x and y only), on a polar grid of ``rings`` x ``spokes`` points and the centre."""
+def jacobian_table(geom, margin: float = 1.25, rings: int = 32, spokes: int = 72) -> tuple:
+    """Bounds of the delta's Jacobian ``J = dX/dq`` by distance from the centre (J depends on x and
+    y only): ``(r_m, sigma, zdev)``, at ``rings + 1`` radii from 0 to the print radius, the largest
+    singular value of J and the largest norm of its z row less ``(1, 1, 1)/3`` (the carriages'
+    mean) over ``spokes`` angles within each ring's outer radius, times ``margin``; beyond the
+    print radius, the values at the rim times 2."""
     r = geom.print_radius_m * np.linspace(0.0, 1.0, rings + 1)
     ang = np.linspace(0.0, 2 * np.pi, spokes, endpoint=False)
     rr, aa = np.meshgrid(r, ang)
-    xyz = np.c_[(rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(), np.zeros(rr.size)]
-    return margin * float(np.max(np.linalg.norm(jacobian(geom, xyz), ord=2, axis=(1, 2))))
+    J = jacobian(geom, np.c_[(rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(), np.zeros(rr.size)])
+    sig = np.linalg.norm(J, ord=2, axis=(1, 2)).reshape(rr.shape).max(axis=0)
+    zdev = np.linalg.norm(J[:, 2, :] - 1.0 / 3.0, axis=1).reshape(rr.shape).max(axis=0)
+    # within each ring's outer radius (bounds grow outward), the next ring's value covers the gap
+    sig, zdev = np.maximum.accumulate(sig), np.maximum.accumulate(zdev)
+    sig, zdev = np.r_[sig[1:], sig[-1]], np.r_[zdev[1:], zdev[-1]]
+    return (np.r_[r, 10.0], margin * np.r_[sig, 2 * sig[-1]], margin * np.r_[zdev, 2 * zdev[-1]])
 
 
 def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -80,9 +88,9 @@ class DeltaCap:
     accel_m_s2: float
     junction_deviation_m: float
     dt_s: float
-    #: an upper bound of ``|J|`` (the largest singular value of dX/dq) over the print disc:
-    #: :func:`cap_breaks`'s cheap screen of the samples that cannot break a cap (inf: no screen)
-    jacobian_bound: float = float("inf")
+    #: :func:`jacobian_table` of the printer: :func:`cap_breaks`'s cheap screen of the samples that
+    #: cannot break a cap (None: no screen)
+    jacobian_bounds: tuple | None = None
 
     def limits(self, u_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(a_seg, along, across)`` for unit directions with z component ``u_z`` (n,): the
@@ -131,25 +139,34 @@ def _licence(cap: DeltaCap, xyz_plan: np.ndarray, idx: np.ndarray | None = None)
 
 def _screen(q: np.ndarray, q_plan: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap) -> np.ndarray:
     """Samples (n,) that may break a cap, from cheap bounds: the command's nozzle velocity and
-    acceleration differ from the plan's by at most ``jacobian_bound`` times the carriage differences'
-    (to first order in the correction, micrometres).  A break needs ``|a| |v_z| > mza |v|`` (along, or
-    across at the centripetal cap) or ``|a| > sqrt(8 jd mza |v|/|v_z|) / dt`` (the square-corner cap).
-    Columns, not reductions over the axis of three (:mod:`ffcomp.linalg3`): this runs on every sample."""
+    acceleration differ from the plan's by at most the Jacobian's norm times the carriage
+    differences' (to first order in the correction, micrometres), its z velocity by the carriages'
+    mean and the z row's deviation from it (:func:`jacobian_table`, by distance from the centre).
+    A break needs ``|a| |v_z| > mza |v|`` (along, or across at the centripetal cap) or
+    ``|a| > sqrt(8 jd mza |v|/|v_z|) / dt`` (the square-corner cap).  Columns, not reductions over
+    the axis of three (:mod:`ffcomp.linalg3`): this runs on every sample."""
     n = len(q)
     out = np.zeros(n, bool)
     if n < 3:
         return out
-    dt, jb = cap.dt_s, cap.jacobian_bound
+    dt = cap.dt_s
+    r_tab, sig_tab, zdev_tab = cap.jacobian_bounds
+    r = np.hypot(xyz_plan[1:-1, 0], xyz_plan[1:-1, 1])
+    k = np.minimum(np.searchsorted(r_tab, r), len(r_tab) - 1)  # the ring at or beyond r
+    jb, jz = sig_tab[k], zdev_tab[k]
     d1 = np.diff(xyz_plan, axis=0)
     v2 = sq_norm3(d1[1:] + d1[:-1]) * (0.5 / dt) ** 2  # the plan's speed^2, interior samples
     vz = np.abs(d1[1:, 2] + d1[:-1, 2]) * (0.5 / dt)
     a = np.sqrt(sq_norm3(d1[1:] - d1[:-1])) / dt**2
     e1 = np.diff(q - q_plan, axis=0)
-    dv = jb * np.sqrt(sq_norm3(e1[1:] + e1[:-1])) * (0.5 / dt)
+    ev = e1[1:] + e1[:-1]
+    dvn = np.sqrt(sq_norm3(ev)) * (0.5 / dt)
+    dv = jb * dvn
     a += jb * np.sqrt(sq_norm3(e1[1:] - e1[:-1])) / dt**2
+    # the correction's z velocity: the carriages' mean, and the z row's deviation from it
+    vz += np.abs(ev[:, 0] + ev[:, 1] + ev[:, 2]) * (0.5 / (3 * dt)) + jz * dvn
     sp = np.sqrt(v2)
     sp_lo = np.maximum(sp - dv, 0.0)
-    vz += dv
     mza = 0.9 * CAP_SHARE * cap.max_z_accel_m_s2  # (0.9: room for the second-order terms)
     ratio = sp_lo / np.maximum(vz, 1e-15)  # at most 1/|u_z|
     lim = np.minimum(mza * ratio, np.sqrt(8.0 * cap.junction_deviation_m * mza * ratio) / dt)
@@ -165,7 +182,7 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
     m) takes there; never the two end samples.  ``pin`` (n,), optional: samples held (a pin
     window's); only those next to a free one are judged, at :data:`EDGE_ACROSS_SHARE` across where a
     pinned run meets the free command.  ``q_plan`` (n, 3), optional: the plan's carriage heights;
-    with a finite ``cap.jacobian_bound`` only the samples a cheap screen cannot clear are judged
+    with ``cap.jacobian_bounds`` only the samples a cheap screen cannot clear are judged
     exactly (the nozzle positions by forward kinematics cost most of the check)."""
     n = len(q)
     out = np.zeros(n, bool)
@@ -173,7 +190,7 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
         return out
     rows, share = _edges(pin, n)
     at_idx = np.arange(n)
-    if q_plan is not None and np.isfinite(cap.jacobian_bound):
+    if q_plan is not None and cap.jacobian_bounds is not None:
         cand = _screen(q, q_plan, xyz_plan, cap) & rows
         cand[0] = cand[-1] = False
         if not cand.any():

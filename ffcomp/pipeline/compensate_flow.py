@@ -23,7 +23,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..compensate.delta_cap import DeltaCap, jacobian_bound
+from ..compensate.delta_cap import DeltaCap, jacobian_table
 from ..errors import GcodeError, SelfCheckError
 from ..gcode.chain_plan import ChainLimits
 from ..gcode.commands import UNKNOWN_POLICIES
@@ -402,7 +402,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 else None
             steep = (lambda meta: moves_where(meta["move_index"], moves, zlim.limited)) if zlim is not None else None
             cap = (DeltaCap(chain.max_z_accel * 1e-3, chain.accel * 1e-3, chain.jd * 1e-3, dt,
-                            jacobian_bound=jacobian_bound(geom)) if chain is not None else None)
+                            jacobian_bounds=jacobian_table(geom)) if chain is not None else None)
             stream = pin_repaired(stream, pins, model, dt, opts.repair, pin_stats, jump_m=JUMP_M, steep_fn=steep,
                                   zpin_fn=zpins, z_limit_m_s2=zlim.lim.max_z_accel * 1e-3 if zlim is not None else None,
                                   cap=cap)
