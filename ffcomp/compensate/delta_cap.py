@@ -213,6 +213,8 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
     at, an = _split(a, u)
     lic = _licence(cap, xyz_plan, judged)
     k = CAP_SHARE * CAP_SLACK * lic
+    if pin is not None:  # a pinned sample where the plan turns past its caps is the plan's own corner
+        rows = rows & ~(np.asarray(pin, bool) & (_licence(cap, xyz_plan) > 1.0))
     bad = (rows[judged] & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
            & ((np.abs(at) > k * along) | (an > k * share[judged] * across)))
     out[judged] = bad
@@ -232,7 +234,10 @@ def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin
     sp = np.linalg.norm(v, axis=1)
     u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
-    lic = CAP_SHARE * _licence(cap, xyz_plan)
+    lic = _licence(cap, xyz_plan)
+    if pin is not None:  # (as in cap_breaks)
+        rows = rows & ~(np.asarray(pin, bool) & (lic > 1.0))
+    lic = CAP_SHARE * lic
     sel = np.nonzero(rows & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2))[0]
     sel = sel[(sel > 0) & (sel < n - 1)]
     t = u[sel]
