@@ -87,17 +87,25 @@ def test_gcode_keeps_time_on_z_travel(other_delta, tmp_path):
     the intended clock, with G-code lag 0.90 and contour 0.13 of the uncompensated (kept 10 % of the
     exact commands' lag reduction); then about +0.5 ms, 0.15 and 0.03, 46 um from the intended
     command at the same instant; with the feed solve's joint refinement (lateness weighted by speed)
-    0.03 and 0.014, 7 um, the largest lateness (+0.9 ms) where the command nearly stands still
-    (loose bounds here)."""
+    0.03 and 0.014, 7 um, the largest lateness (+0.9 ms) into the XZ reversal, where the correction
+    turned the command steeper than the plan while it braked at the plan's 10,000 mm/s^2, past
+    Klipper's cap ``max_z_accel / |u_z|``; with that stretch brought within the cap
+    (:mod:`ffcomp.compensate.delta_cap`) +0.12 ms, lag 0.012 (loose bounds here; the case: without
+    the cap windows the drift is back above 0.6 ms)."""
     prof, truth = other_delta
     src = tmp_path / "z.gcode"
     src.write_text(Z_TRAVEL)
-    c = check_gcode_output(prof, src, tmp_path / "out.gcode", plant_profile=truth,
-                           opts=CompensateOptions(predict=False, self_check_tol_um=1e9, self_check_drift_ms=1e9))
+    base = CompensateOptions(predict=False, self_check_tol_um=1e9, self_check_drift_ms=1e9)
+    c = check_gcode_output(prof, src, tmp_path / "out.gcode", plant_profile=truth, opts=base)
     lag = c.gcode.lag.rms_norm_um / c.none.lag.rms_norm_um
     contour = c.gcode.contour.rms_norm_um / c.none.contour.rms_norm_um
-    assert abs(c.summary.self_check_drift_ms) < 2.0
-    assert c.summary.self_check_abs_max_um < 20.0
-    assert lag < 0.08
-    assert contour < 0.03
+    assert abs(c.summary.self_check_drift_ms) < 0.3
+    assert c.summary.self_check_abs_max_um < 10.0
+    assert lag < 0.03
+    assert contour < 0.02
     assert c.exact.lag.rms_norm_um / c.none.lag.rms_norm_um < 0.05  # the exact commands are unchanged
+    off = replace(base, repair=replace(base.repair, cap_windows=False))
+    c0 = check_gcode_output(prof, src, tmp_path / "out0.gcode", plant_profile=truth, opts=off)
+    assert abs(c0.summary.self_check_drift_ms) > 0.6  # the case
+    assert c.summary.cap_windows > 0 and c0.summary.cap_windows == 0  # (the summary says so)
+    assert 0.0 < c.summary.cap_max_change_um < 20.0

@@ -104,6 +104,12 @@ class RepairConfig:
         line and turned from XY into z within a few samples, which Klipper's centripetal rule at
         ``max_z_accel / |u_z|`` takes slower than the command (other_delta: the random files' median
         drift 0.29 -> 0.20 ms, cube_wipe_prusa +0.37 -> -0.33 ms)
+    cap_windows : the free command that accelerates, along or across its path, harder than
+        Klipper's delta cap ``max_z_accel * d/|dz|`` allows (and harder than the plan there) is
+        changed as little as the model's response allows to keep it
+        (:mod:`ffcomp.compensate.delta_cap`), and so is what a pin window's repair leaves past it.
+        The fidelity bench's z travel on other_delta: +0.93 -> +0.12 ms (an XZ reversal, where the
+        correction turned the command steeper than the plan while it braked at 10,000 mm/s^2)
     print_weight : the model's response on the samples where the plan prints (extrudes while it
         moves in XY: what marks the part) counts this many times in the objective; the rest (the hold, a
         lift, the travel) takes more of the change.  ``cube_prusa.gcode`` simulated on

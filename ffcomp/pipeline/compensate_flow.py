@@ -415,6 +415,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     if pred is not None:
         pred.flush()
     summ.pin_windows, summ.pinned_samples = pin_stats.windows, pin_stats.pinned_samples
+    summ.cap_windows, summ.cap_max_change_um = pin_stats.cap_windows, pin_stats.cap_max_change_m * 1e6
     summ.pin_max_change_um = pin_stats.max_change_m * 1e6
     parser = plan.parser
     return BodyResult(stats=writer.stats, accel=accel, firmware=plan.firmware,

@@ -156,6 +156,10 @@ class CompensationSummary:
     pin_windows: int = 0
     pinned_samples: int = 0
     pin_max_change_um: float = 0.0
+    #: stretches whose command was brought within Klipper's delta cap ``max_z_accel * d/|dz|``
+    #: (:mod:`ffcomp.compensate.delta_cap`), and the largest change of the command there (um)
+    cap_windows: int = 0
+    cap_max_change_um: float = 0.0
     #: worker processes (``--jobs``) and, with more than one, each piece: its first source line, how
     #: it ends (the cut's kind: ``stop``, ``hold`` or None at the end of the file), its samples' print
     #: time, and its worker's wall and CPU time (s)

@@ -48,8 +48,8 @@ CUT_NOTE = ("--jobs {jobs}: the file was compensated in {pieces} pieces cut wher
             "{extra:.2f} s in all)")
 
 _SUMMED = ("restarts", "clamped", "plan_fallback_samples", "pin_windows", "pinned_samples", "hold_margins",
-           "hold_margin_time_s")
-_MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s")
+           "hold_margin_time_s", "cap_windows")
+_MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s", "cap_max_change_um")
 
 
 def piece_lines(total_lines: int, jobs: int, src: str | None = None) -> list[Piece]:

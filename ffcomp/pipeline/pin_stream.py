@@ -25,13 +25,15 @@ __all__ = ["PinStats", "pin_repaired"]
 
 
 class PinStats:
-    """What the repair did: windows solved, pinned samples, largest change of the command (m)."""
+    """What the repair did: windows solved, pinned samples, largest change of the command (m); the
+    windows brought within Klipper's delta cap and their largest change (m)."""
 
     def __init__(self):
         self.windows = 0
         self.pinned_samples = 0
         self.max_change_m = 0.0
-        self.cap_windows = 0
+        self.cap_windows = 0  # windows brought within Klipper's delta cap (delta_cap)
+        self.cap_max_change_m = 0.0
 
 
 def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
@@ -98,17 +100,19 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         """``q`` (a window's command; ``pw`` its pins, held) brought within Klipper's delta cap where
         it passes it (:func:`cap_breaks`): :func:`cap_window`, again on its result (its rows are
         linearised about the command) up to :data:`CAP_PASSES` times."""
-        jr = None
+        jr, q0 = None, q
         for _ in range(CAP_PASSES):
             if not np.any(cap_breaks(geom, q, xp, cap, pw, q_plan=qp)):
                 break
             if jr is None:
                 jr = jacobian(geom, xp)
             new = cap_window(responses.at(pose), q, J, jr, xp, cap, cfg, pin=pw, cache=ops, key=key)
-            stats.cap_windows += 1
             if new is q:
                 break
             q = new
+        if q is not q0:
+            stats.cap_windows += 1
+            stats.cap_max_change_m = max(stats.cap_max_change_m, float(np.max(np.abs(q - q0))))
         return q
 
     def solve(final: bool) -> int:
@@ -177,7 +181,6 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 if not any_pin[a:b].any() and cfg.cap_windows:  # a free stretch past the delta cap
                     new = capped(old, buf_meta["xyz"][w0:w1], buf_meta["q"][w0:w1], np.zeros(w1 - w0, bool), pose,
                                  key, J)
-                    stats.max_change_m = max(stats.max_change_m, float(np.max(np.abs(new - old))))
                     buf_q[w0:w1] = new
                     repaired_upto = b
                     continue
