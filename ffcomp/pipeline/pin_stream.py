@@ -55,6 +55,8 @@ def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
 CAP_AFTER_PINS = True
 #: how many times a window's cap pass runs (each linearised about the last one's command)
 CAP_PASSES = 3
+#: a window's cap pass that would change the command by more than this (m) is not taken
+CAP_MAX_CHANGE_M = 10e-6
 
 
 def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[dict], np.ndarray], model, dt_s: float,
@@ -110,6 +112,8 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             if new is q:
                 break
             q = new
+        if q is not q0 and float(np.max(np.abs(q - q0))) > CAP_MAX_CHANGE_M:
+            q = q0  # the stretch the firmware cannot run on its clock is not a small change away
         if q is not q0:
             stats.cap_windows += 1
             stats.cap_max_change_m = max(stats.cap_max_change_m, float(np.max(np.abs(q - q0))))
