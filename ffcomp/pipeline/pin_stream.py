@@ -111,9 +111,9 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             new = cap_window(responses.at(pose), q, J, jr, xp, cap, cfg, pin=pw, cache=ops, key=key)
             if new is q:
                 break
+            if float(np.max(np.abs(new - q0))) > CAP_MAX_CHANGE_M:
+                return q0  # the stretch the firmware cannot run on its clock is not a small change away
             q = new
-        if q is not q0 and float(np.max(np.abs(q - q0))) > CAP_MAX_CHANGE_M:
-            q = q0  # the stretch the firmware cannot run on its clock is not a small change away
         if q is not q0:
             stats.cap_windows += 1
             stats.cap_max_change_m = max(stats.cap_max_change_m, float(np.max(np.abs(q - q0))))
