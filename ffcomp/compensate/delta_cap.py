@@ -17,8 +17,7 @@ the licence where the plan itself runs past them.  Pure numeric kernels: SI unit
 
 from __future__ import annotations
 
-import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.linalg import cho_solve
@@ -29,7 +28,7 @@ from ..linalg3 import sq_norm3
 from .pin_repair import MAX_BOUND_CHANGE_M, STILL_M_S, XY_SHARE, RepairConfig, _cached, _operator, _second_difference
 from .stream import _active_set_qp
 
-__all__ = ["DeltaCap", "cap_breaks", "cap_window", "CAP_SHARE", "CAP_SLACK"]
+__all__ = ["DeltaCap", "cap_breaks", "cap_window", "jacobian_table", "CAP_SHARE", "CAP_SLACK", "EDGE_ACROSS_SHARE"]
 
 #: :func:`cap_window` keeps the command within this share of the caps
 CAP_SHARE = 0.97
@@ -63,7 +62,7 @@ def jacobian_table(geom, margin: float = 1.25, rings: int = 32, spokes: int = 72
 def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
     """``(rows, share)``: the samples whose acceleration moves with the free ones (free, or pinned
     next to a free one), and the share (n,) of the cap across the path at each sample
-    (:data:`EDGE_ACROSS_SHARE` where a pinned run meets a free one)."""
+    (:data:`EDGE_ACROSS_SHARE` at a pinned run's last sample and the free one after it)."""
     if pin is None or not np.any(pin):
         return np.ones(n, bool), np.ones(n)
     pin = np.asarray(pin, bool)
@@ -273,8 +272,7 @@ def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, J_rows: np.ndarray, 
     if n < 3:
         return c
     pin = np.zeros(n, bool) if pin is None else np.asarray(pin, bool)
-    cfg1 = copy.copy(cfg)
-    object.__setattr__(cfg1, "knot_samples", 1)
+    cfg1 = replace(cfg, knot_samples=1)
     dt_s = cap.dt_s
     op = _cached(cache, (key, n, "cap", np.packbits(pin).tobytes()), lambda: _operator(H, pin, J, dt_s, cfg1))
     if op.nf == 0:
