@@ -214,7 +214,7 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "clamped": ("samples clamped to the workspace", "{}"),
         "pinned_samples": ("samples held on the plan (retractions, dwells, z-hops)", "{}"),
         "pin_windows": ("windows re-solved around them", "{}"),
-        "cap_windows": ("stretches brought within max_z_accel * d/|dz| (Klipper's delta cap)", "{}"),
+        "cap_windows": ("stretches brought within the delta cap", "{}"),
         "cap_max_change_um": ("  largest change of the command there", "{:.1f} um"),
         "hold_margins": ("rest margins around retractions (--hold-margin-ms)", "{}"),
         "hold_margin_time_s": ("time they add", "{:.2f} s"),
