@@ -528,4 +528,3 @@ def repair_window(H: np.ndarray, c: np.ndarray, q: np.ndarray, pin: np.ndarray, 
     out = c + o + op.S @ z
     out[pin] = q[pin]
     return out
-

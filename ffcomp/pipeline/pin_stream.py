@@ -3,7 +3,8 @@
 Chunks of compensated carriage commands with their per-sample metadata go in; the same chunks (the
 same lengths: a chunk boundary may be a stream boundary for the caller) come out, a little later,
 with the command equal to the plan on pinned samples (extruder-only moves, dwells, moves the
-firmware's limits bind, z-hops right after a retraction) and re-solved around them.  Rows are held back until
+firmware's limits bind, z-hops right after a retraction) and re-solved around them, and with the
+free stretches that pass Klipper's delta caps re-solved to keep them.  Rows are held back until
 every window that could reach them is complete (``margin`` samples after the last pinned run), so
 the delay is a window plus a margin; a homing jump (a new stream) closes a window.
 """
@@ -51,8 +52,6 @@ def _still_near(seed: np.ndarray, qref: np.ndarray, reach: int) -> np.ndarray:
     return out & ~seed
 
 
-#: the cap pass also runs on what a pin window's repair leaves past the caps (its pins held)
-CAP_AFTER_PINS = True
 #: how many times a window's cap pass runs (each linearised about the last one's command)
 CAP_PASSES = 3
 #: a window's cap pass that would change the command by more than this (m) is not taken
@@ -75,7 +74,10 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
     ``zpin_fn(meta)`` (optional): samples where only the nozzle's z is pinned to the plan
     (:func:`~ffcomp.compensate.pin_repair.repair_window`'s ``zpin``), x and y free.
     ``z_limit_m_s2`` (optional): the firmware's ``max_z_accel``, which the repaired command's nozzle z
-    acceleration keeps (:func:`~ffcomp.compensate.pin_repair.repair_window`).
+    acceleration keeps (:func:`~ffcomp.compensate.pin_repair.repair_window`).  ``cap`` (optional,
+    with ``cfg.cap_windows``): Klipper's delta caps (:mod:`ffcomp.compensate.delta_cap`); a free
+    stretch whose command passes them, and what a pin window's repair leaves past them, are
+    re-solved to keep them (by at most :data:`CAP_MAX_CHANGE_M`; counted in ``stats``).
     """
     stats = stats if stats is not None else PinStats()
     responses = PulseResponses(model, dt_s, cfg)
@@ -182,7 +184,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                 J = jac.get(key)
                 if J is None:
                     J = jac[key] = jacobian(geom, responses.centre(key, pose))
-                if not any_pin[a:b].any() and cfg.cap_windows:  # a free stretch past the delta cap
+                if not any_pin[a:b].any():  # a free stretch past the delta cap (only cap marks it)
                     new = capped(old, buf_meta["xyz"][w0:w1], buf_meta["q"][w0:w1], np.zeros(w1 - w0, bool), pose,
                                  key, J)
                     buf_q[w0:w1] = new
@@ -198,7 +200,7 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
                                     cfg_steep if steep else cfg, cache=ops, key=(key, steep),
                                     zpin=buf_zpin[w0:w1] & ~pin_now[w0:w1], z_limit_m_s2=z_limit_m_s2,
                                     printing=printing)
-                if cap is not None and cfg.cap_windows and CAP_AFTER_PINS and not buf_zpin[w0:w1].any():
+                if cap is not None and cfg.cap_windows and not buf_zpin[w0:w1].any():
                     # what the repair leaves past the delta cap on its free samples: re-solved with
                     # the pins held (every sample a knot)
                     new = capped(new, buf_meta["xyz"][w0:w1], buf_meta["q"][w0:w1], pin_now[w0:w1], pose, key, J)
