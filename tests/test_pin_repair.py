@@ -321,8 +321,8 @@ def test_a_lifts_x_and_y_correction_runs_straight(profile):
 
 def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     """``lead_into``: the samples within ``span_s`` of the end of a travel (no extrusion) whose next
-    move the predicate picks; none of an extruding move's unless ``printed_s`` (its own span) is
-    given, none with ``span_s = 0``."""
+    move the predicate picks (``z_span_s`` for a travel steeper than 45 degrees); none of an
+    extruding move's unless ``printed_s`` (its own span) is given, none with ``span_s = 0``."""
     from ffcomp.gcode.moves import PlannedMove
     from ffcomp.pipeline.limited_moves import lead_into
 
@@ -349,6 +349,12 @@ def test_lead_into_marks_the_end_of_a_travel_into_a_chosen_move():
     wet[1] = mv(1, 0.010, 0.010, z1=0.6, e=0.3)
     wet[3] = mv(3, 0.030, 0.010, z1=0.6, e=0.3)
     assert np.nonzero(lead_into(idx, wet, t, 0.0025, pick, printed_s=0.0015))[0].tolist() == [8, 9]
+    # a travel that moves more in z than in XY (move 0 rising 2 mm over 1 mm) takes z_span_s
+    steep = dict(moves)
+    steep[0] = mv(0, 0.0, 0.010, z1=3.0)
+    assert np.nonzero(lead_into(idx, steep, t, 0.0025, pick, z_span_s=0.0015))[0].tolist() == [9]
+    assert np.nonzero(lead_into(idx, steep, t, 0.0025, pick))[0].tolist() == [8, 9]
+    assert np.nonzero(lead_into(idx, moves, t, 0.0025, pick, z_span_s=0.0015))[0].tolist() == [8, 9]  # (flat)
 
 
 def test_the_repair_keeps_the_nozzle_z_acceleration_within_the_firmware_limit(model):

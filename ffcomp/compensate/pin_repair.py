@@ -79,7 +79,11 @@ class RepairConfig:
         arrives at the corner on the plan, not bending in z while it brakes (Klipper caps a
         segment's acceleration at ``max_z_accel * d/|dz|``; on the fidelity bench's z-hop row,
         other_delta, the re-planned output ran 0.63 ms early there, 13 um off the command, and with
-        2 ms 0.25 ms and 4 um; 1 ms left 0.32 ms, 3-5 ms no better than 2)
+        2 ms 0.25 ms and 4 um; 1 ms left 0.32 ms, 3-5 ms no better than 2; with the cap pass,
+        ``cap_windows``, 2 ms left that row at +0.200 ms and 2.5 ms -0.031 ms)
+    lead_in_z_s : the same for a travel that moves more in z than in XY (a z move into a pinned z
+        move): 2.5 ms there put a random file's clock 21.7 um off (6.6 with 2 ms) and another's
+        drift +0.09 -> +0.24 ms
     lead_in_printed_s : the same for a printed line that runs into such a pinned move (a layer
         change's lift right after the line, ``pin_layer_lifts``): its last this-many seconds are
         pinned.  The free command pre-actuated the lift while the plan braked the line in XY at
@@ -135,7 +139,8 @@ class RepairConfig:
     steep_accel_factor: float = 5.0
     z_only_hops: bool = False
     lift_xy_accel_factor: float = 100.0
-    lead_in_s: float = 0.002
+    lead_in_s: float = 0.0025
+    lead_in_z_s: float = 0.002
     lead_in_printed_s: float = 0.002
     still_near_steep: bool = True
     pin_layer_lifts: bool = True

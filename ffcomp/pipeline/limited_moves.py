@@ -9,6 +9,8 @@ and sample arrays; no files.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ..gcode.chain_plan import ChainLimits, segment_limits
@@ -57,11 +59,12 @@ def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: flo
 
 
 def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred,
-              printed_s: float = 0.0) -> np.ndarray:
+              printed_s: float = 0.0, z_span_s: float | None = None) -> np.ndarray:
     """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion), or
     within ``printed_s`` of the end of a move that extrudes into one that does not, whose next move
-    satisfies ``pred``; ``t_s``: the samples' times, s."""
-    if max(span_s, printed_s) <= 0.0 or not len(move_index):
+    satisfies ``pred``; ``t_s``: the samples' times, s.  ``z_span_s`` (default ``span_s``): the span
+    for a travel that moves more in z than in XY."""
+    if max(span_s, printed_s, z_span_s or 0.0) <= 0.0 or not len(move_index):
         return np.zeros(len(move_index), bool)
     uniq, inv = np.unique(move_index, return_inverse=True)
     from_s = np.full(len(uniq), np.inf)  # per move: the time from which its samples lead in
@@ -72,7 +75,13 @@ def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: floa
         printed = mv.end_mm[3] != mv.start_mm[3]
         if printed and nx.end_mm[3] != nx.start_mm[3]:
             continue  # (a lift that extrudes: Klipper's extruder junction rule governs that corner)
-        span = printed_s if printed else span_s
+        if printed:
+            span = printed_s
+        elif z_span_s is not None and math.hypot(mv.end_mm[0] - mv.start_mm[0], mv.end_mm[1] - mv.start_mm[1]) \
+                < abs(mv.end_mm[2] - mv.start_mm[2]):
+            span = z_span_s
+        else:
+            span = span_s
         if span > 0.0 and pred(nx):
             from_s[q] = mv.t_end_s - span
     return np.asarray(t_s) > from_s[inv.reshape(-1)]
