@@ -66,7 +66,7 @@ def _edges(pin: np.ndarray | None, n: int) -> tuple[np.ndarray, np.ndarray]:
     if pin is None or not np.any(pin):
         return np.ones(n, bool), np.ones(n)
     pin = np.asarray(pin, bool)
-    prev, nxt = np.r_[pin[:1], pin[:-1]], np.r_[pin[1:], pin[-1:]]
+    prev, nxt = np.concatenate((pin[:1], pin[:-1])), np.concatenate((pin[1:], pin[-1:]))
     free_near = ~prev | ~nxt
     rows = ~pin | free_near
     edge = (pin & ~nxt) | (~pin & prev)  # where a pinned run ends (the writer's short segment)
@@ -102,7 +102,7 @@ class DeltaCap:
 def _split(a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Acceleration ``a`` (n, 3) along unit ``u`` (n, 3) (signed) and across it (magnitude)."""
     at = np.einsum("ij,ij->i", a, u)
-    return at, np.linalg.norm(a - at[:, None] * u, axis=1)
+    return at, np.sqrt(sq_norm3(a - at[:, None] * u))
 
 
 def _central(p: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -128,7 +128,7 @@ def _licence(cap: DeltaCap, xyz_plan: np.ndarray, idx: np.ndarray | None = None)
         v = (xyz_plan[hi] - xyz_plan[lo]) / (np.maximum(hi - lo, 1) * cap.dt_s)[:, None]
         c = np.clip(idx, 1, max(n - 2, 1))
         a = (xyz_plan[np.minimum(c + 1, n - 1)] - 2 * xyz_plan[c] + xyz_plan[c - 1]) / cap.dt_s**2
-        sp = np.linalg.norm(v, axis=1)
+        sp = np.sqrt(sq_norm3(v))
         u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
@@ -196,7 +196,9 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
             return out
         c = np.nonzero(cand)[0]
         if c.size < n // 3:  # the candidates and their neighbours only
-            at_idx = np.unique(np.r_[c - 1, c, c + 1])
+            near = np.zeros(n, bool)
+            near[c - 1] = near[c] = near[c + 1] = True
+            at_idx = np.flatnonzero(near)
     p = forward(geom, q[at_idx])
     if at_idx.size == n:
         sp, u, a = _central(p, cap.dt_s)
@@ -206,15 +208,16 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
         i0, i1, i2 = (np.searchsorted(at_idx, c + d) for d in (-1, 0, 1))
         v = (p[i2] - p[i0]) / (2 * cap.dt_s)
         a = (p[i2] - 2 * p[i1] + p[i0]) / cap.dt_s**2
-        sp = np.linalg.norm(v, axis=1)
+        sp = np.sqrt(sq_norm3(v))
         u = v / np.maximum(sp, 1e-15)[:, None]
     a_seg, along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
     lic = _licence(cap, xyz_plan, judged)
     k = CAP_SHARE * CAP_SLACK * lic
+    rj = rows[judged]
     if pin is not None:  # a pinned sample where the plan turns past its caps is the plan's own corner
-        rows = rows & ~(np.asarray(pin, bool) & (_licence(cap, xyz_plan) > 1.0))
-    bad = (rows[judged] & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
+        rj = rj & ~(np.asarray(pin, bool)[judged] & (lic > 1.0))
+    bad = (rj & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
            & ((np.abs(at) > k * along) | (an > k * share[judged] * across)))
     out[judged] = bad
     out[0] = out[-1] = False
