@@ -91,12 +91,12 @@ class DeltaCap:
     #: cannot break a cap (None: no screen)
     jacobian_bounds: tuple | None = None
 
-    def limits(self, u_z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(a_seg, along, across)`` for unit directions with z component ``u_z`` (n,): the
-        segment's acceleration, and the largest nozzle acceleration along and across it, m/s^2."""
-        a_seg = np.minimum(self.accel_m_s2, self.max_z_accel_m_s2 / np.maximum(np.abs(u_z), 1e-9))
-        across = np.minimum(a_seg, np.sqrt(8.0 * self.junction_deviation_m * a_seg) / self.dt_s)
-        return a_seg, a_seg, across
+    def limits(self, u_z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(along, across)`` for unit directions with z component ``u_z`` (n,): the segment's
+        acceleration (the largest nozzle acceleration along it) and the largest across it, m/s^2."""
+        along = np.minimum(self.accel_m_s2, self.max_z_accel_m_s2 / np.maximum(np.abs(u_z), 1e-9))
+        across = np.minimum(along, np.sqrt(8.0 * self.junction_deviation_m * along) / self.dt_s)
+        return along, across
 
 
 def _split(a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,32 +105,24 @@ def _split(a: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return at, np.sqrt(sq_norm3(a - at[:, None] * u))
 
 
-def _central(p: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Speed (n,), unit velocity (n, 3) and acceleration (n, 3) of positions ``p`` (n, 3) by central
-    differences (the ends copied from their neighbours)."""
-    v = np.gradient(p, axis=0) / dt_s
-    a = np.zeros_like(p)
-    if len(p) >= 3:
-        a[1:-1] = (p[2:] - 2 * p[1:-1] + p[:-2]) / dt_s**2
-        a[0], a[-1] = a[1], a[-2]
-    sp = np.linalg.norm(v, axis=1)
+def _diffs(p: np.ndarray, idx: np.ndarray, dt_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Speed (k,), unit velocity (k, 3) and acceleration (k, 3) of positions ``p`` (n >= 3, 3) at the
+    samples ``idx`` (k,), by central differences (at the two ends: the velocity one-sided, the
+    acceleration the neighbour's)."""
+    n = len(p)
+    lo, hi = np.maximum(idx - 1, 0), np.minimum(idx + 1, n - 1)
+    v = (p[hi] - p[lo]) / ((hi - lo) * dt_s)[:, None]
+    c = np.clip(idx, 1, n - 2)
+    a = (p[c + 1] - 2 * p[c] + p[c - 1]) / dt_s**2
+    sp = np.sqrt(sq_norm3(v))
     return sp, v / np.maximum(sp, 1e-15)[:, None], a
 
 
 def _licence(cap: DeltaCap, xyz_plan: np.ndarray, idx: np.ndarray | None = None) -> np.ndarray:
     """Per sample (or at the samples ``idx``), how far the plan itself runs past its own caps (at
     least 1): the command may too."""
-    n = len(xyz_plan)
-    if idx is None:
-        sp, u, a = _central(xyz_plan, cap.dt_s)
-    else:  # central differences at idx (one-sided at the ends, as _central)
-        lo, hi = np.maximum(idx - 1, 0), np.minimum(idx + 1, n - 1)
-        v = (xyz_plan[hi] - xyz_plan[lo]) / (np.maximum(hi - lo, 1) * cap.dt_s)[:, None]
-        c = np.clip(idx, 1, max(n - 2, 1))
-        a = (xyz_plan[np.minimum(c + 1, n - 1)] - 2 * xyz_plan[c] + xyz_plan[c - 1]) / cap.dt_s**2
-        sp = np.sqrt(sq_norm3(v))
-        u = v / np.maximum(sp, 1e-15)[:, None]
-    a_seg, along, across = cap.limits(u[:, 2])
+    sp, u, a = _diffs(xyz_plan, np.arange(len(xyz_plan)) if idx is None else idx, cap.dt_s)
+    along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
     over = np.maximum(np.abs(at) / along, an / across) / CAP_SHARE
     return np.where(sp >= STILL_M_S, np.maximum(over, 1.0), 1.0)
@@ -199,25 +191,20 @@ def cap_breaks(geom, q: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin: np
             near = np.zeros(n, bool)
             near[c - 1] = near[c] = near[c + 1] = True
             at_idx = np.flatnonzero(near)
-    p = forward(geom, q[at_idx])
     if at_idx.size == n:
-        sp, u, a = _central(p, cap.dt_s)
-        judged = at_idx
-    else:  # central differences at the candidates from their own neighbours
-        judged = c
-        i0, i1, i2 = (np.searchsorted(at_idx, c + d) for d in (-1, 0, 1))
-        v = (p[i2] - p[i0]) / (2 * cap.dt_s)
-        a = (p[i2] - 2 * p[i1] + p[i0]) / cap.dt_s**2
-        sp = np.sqrt(sq_norm3(v))
-        u = v / np.maximum(sp, 1e-15)[:, None]
-    a_seg, along, across = cap.limits(u[:, 2])
+        p, judged = forward(geom, q), at_idx
+    else:  # the candidates (inner samples), from their own neighbours
+        p, judged = np.zeros((n, 3)), c
+        p[at_idx] = forward(geom, q[at_idx])
+    sp, u, a = _diffs(p, judged, cap.dt_s)
+    along, across = cap.limits(u[:, 2])
     at, an = _split(a, u)
     lic = _licence(cap, xyz_plan, judged)
     k = CAP_SHARE * CAP_SLACK * lic
     rj = rows[judged]
     if pin is not None:  # a pinned sample where the plan turns past its caps is the plan's own corner
         rj = rj & ~(np.asarray(pin, bool)[judged] & (lic > 1.0))
-    bad = (rj & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2)
+    bad = (rj & (sp >= STILL_M_S) & (along < cap.accel_m_s2)
            & ((np.abs(at) > k * along) | (an > k * share[judged] * across)))
     out[judged] = bad
     out[0] = out[-1] = False
@@ -235,12 +222,12 @@ def _rows(c: np.ndarray, J: np.ndarray, xyz_plan: np.ndarray, cap: DeltaCap, pin
     v = np.einsum("nij,nj->ni", J, np.gradient(c, axis=0)) / cap.dt_s
     sp = np.linalg.norm(v, axis=1)
     u = v / np.maximum(sp, 1e-15)[:, None]
-    a_seg, along, across = cap.limits(u[:, 2])
+    along, across = cap.limits(u[:, 2])
     lic = _licence(cap, xyz_plan)
     if pin is not None:  # (as in cap_breaks)
         rows = rows & ~(np.asarray(pin, bool) & (lic > 1.0))
     lic = CAP_SHARE * lic
-    sel = np.nonzero(rows & (sp >= STILL_M_S) & (a_seg < cap.accel_m_s2))[0]
+    sel = np.nonzero(rows & (sp >= STILL_M_S) & (along < cap.accel_m_s2))[0]
     sel = sel[(sel > 0) & (sel < n - 1)]
     t = u[sel]
     # two unit normals per row: t x e (e the axis least along t), then t x n1
