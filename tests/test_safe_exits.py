@@ -340,3 +340,43 @@ def test_temp_registry_names_and_cleanup(tmp_path):
     keep_temp(b)  # renamed into place: no longer a temp file
     assert cleanup_temps() == 1 and not os.path.exists(a) and (tmp_path / "final.gcode").exists()
     assert cleanup_temps() == 0
+
+
+def test_ctrl_c_during_an_osqp_solve_is_not_lost():
+    """OSQP takes SIGINT for itself while it iterates (the solve just ends, status "interrupted"), so a
+    Ctrl-C landing there never reached Python: the hook once ran to the end and exited 0 after Ctrl-C.
+    The solve wrapper raises :class:`Interrupted` instead.  Python's own handler only records here, so
+    a signal that lands between solves is told apart and sent again."""
+    import numpy as np
+    import osqp
+    import scipy.sparse as sp
+
+    from ffcomp.compensate.stream import _osqp_solve
+    from ffcomp.errors import Interrupted
+
+    n = 300
+    rng = np.random.default_rng(0)
+    m = rng.standard_normal((n, n))
+    P = sp.triu(sp.csc_matrix(m @ m.T + np.eye(n)), format="csc")
+    python_saw = []
+    old = signal.signal(signal.SIGINT, lambda s, f: python_saw.append(s))
+    try:
+        for _ in range(20):
+            timer = threading.Timer(0.05, lambda: os.kill(os.getpid(), signal.SIGINT))
+            timer.start()
+            try:
+                t_end = time.monotonic() + 5.0
+                while time.monotonic() < t_end and not python_saw:
+                    s = osqp.OSQP()
+                    s.setup(P=P, q=rng.standard_normal(n), A=sp.identity(n, format="csc"), l=-np.ones(n),
+                            u=np.ones(n), verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=100000)
+                    _osqp_solve(s)
+            except Interrupted as e:
+                assert e.exit_code == 130
+                return
+            finally:
+                timer.join()
+            python_saw.clear()
+        pytest.fail("the signal never landed inside a solve in 20 tries")
+    finally:
+        signal.signal(signal.SIGINT, old)

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
-from ..errors import SolverError
+from ..errors import Interrupted, SolverError
 from ..linalg3 import cross3
 from ..model.lpv import LpvModel
 from .bspline import UniformBasis
@@ -57,6 +57,18 @@ def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.nda
     a = (s[2:] - 2.0 * s[1:-1] + s[:-2]) / dt**2
     return s[1:-1], v, a
 
+
+
+def _osqp_solve(solver):
+    """``solver.solve()`` that keeps Ctrl-C: OSQP installs its own SIGINT handler while it iterates,
+    so a Ctrl-C then only ends the solve (status ``"interrupted"``) and never reaches Python's
+    handler; it is raised here as :class:`~ffcomp.errors.Interrupted` (the run stops, exit 130)."""
+    res = solver.solve(raise_error=False)
+    if res.info.status == "interrupted":
+        import signal
+
+        raise Interrupted(signal.SIGINT)
+    return res
 
 class FbsStream:
     """Windowed LTI filtered-B-spline least squares, fed in chunks.
@@ -405,7 +417,7 @@ class FbsStream:
             hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, a_hi[:, ch] - e2[:, ch]])
             solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
             solver.warm_start(x=c[:, ch] / sc)
-            res = solver.solve(raise_error=False)
+            res = _osqp_solve(solver)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if band is not None and (not ok or res.x is None or not np.all(np.isfinite(res.x))):
                 # the committed past leaves no room for the common-mode band: the plain bounds only
@@ -414,7 +426,7 @@ class FbsStream:
                 hi[2 * R:] = Ab[:, ch] - aref[:, ch] - e2[:, ch]
                 solver.update(l=lo / rn, u=hi / rn)
                 solver.warm_start(x=c[:, ch] / sc)
-                res = solver.solve(raise_error=False)
+                res = _osqp_solve(solver)
                 ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if not ok or res.x is None or not np.all(np.isfinite(res.x)):
                 raise SolverError(
@@ -521,7 +533,7 @@ class FbsStream:
                          u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
                          max_iter=4000, polishing=False)
             solver.warm_start(x=x0)
-            res = solver.solve(raise_error=False)
+            res = _osqp_solve(solver)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             return res.x if ok and res.x is not None and np.all(np.isfinite(res.x)) else None
 
