@@ -57,6 +57,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=80, help="files (half on each profile)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--dump", type=Path, default=None,
+                    help="write every file that drifts more than 0.2 ms here, as PROFILE-K.gcode, to trace")
     a = ap.parse_args()
     rng = np.random.default_rng(a.seed)
     profs = [("default", default_profile()), ("other_delta", load_profile(ROOT / "samples/profiles/other_delta.toml"))]
@@ -71,6 +73,9 @@ def main() -> None:
             s = compensate_file(str(src), str(tmp / "o.gcode"), prof,
                                 CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
             res[name].append((abs(s.self_check_drift_ms), s.self_check_max_um, s.self_check_abs_max_um, text))
+            if a.dump is not None and abs(s.self_check_drift_ms) > 0.2:
+                a.dump.mkdir(parents=True, exist_ok=True)
+                (a.dump / f"{name}-{k:03d}.gcode").write_text(f"; drift {s.self_check_drift_ms:+.3f} ms\n" + text)
         except Exception as e:  # a failure is a row
             res[name].append((float("nan"), float("nan"), float("nan"), f"{type(e).__name__}: {e}"[:200]))
     print("| profile | files | failed | drift > 0.2 ms | drift > 1 ms | median drift (ms) | max drift (ms) "

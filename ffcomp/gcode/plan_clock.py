@@ -16,7 +16,7 @@ import numpy as np
 
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "corner_segment_mm", "plan_speeds",
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "corner_segment_mm", "free_corner", "plan_speeds",
            "REST_POINT_NEAR_MM",
            "CORNER_LEAD_MAX_MM"]
 
@@ -85,16 +85,17 @@ CORNER_LEAD_MAX_SAMPLES = 16
 CORNER_LEAD_GAP_MM = 2e-3
 
 
-def corner_segment_mm(u_in, u_out, v_mm_s: float, accel_mm_s2: float) -> float | None:
+def corner_segment_mm(u_in, u_out, v_mm_s: float, accel_mm_s2: float,
+                      max_mm: float = CORNER_LEAD_MAX_MM) -> float | None:
     """The length (mm) a segment next to a junction needs for Klipper's centripetal rule,
     ``v^2 <= d a tan(theta/2) / 2``, to allow ``v_mm_s`` there: ``2 v^2 / (a tan(theta/2))`` for the
     inner angle ``theta`` between the directions ``u_in`` and ``u_out``, at most
-    :data:`CORNER_LEAD_MAX_MM`; None on a (nearly) straight line (no rule) or under a micrometre."""
+    ``max_mm``; None on a (nearly) straight line (no rule) or under a micrometre."""
     jc = -float(np.dot(u_in[:3], u_out[:3]))  # Klipper's junction_cos_theta
     if jc < -0.999:
         return None
     tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
-    reach = min(2.0 * v_mm_s * v_mm_s / (accel_mm_s2 * tan_half), CORNER_LEAD_MAX_MM)
+    reach = min(2.0 * v_mm_s * v_mm_s / (accel_mm_s2 * tan_half), max_mm)
     return reach if reach >= 1e-3 else None
 
 
@@ -264,3 +265,98 @@ def plan_speeds(dt: float, k0: int, mvs: list, a_s, offs, src, K, i, j, srun, we
     peak = np.where(tj <= ta, v(tj), np.where(ti >= ta + tc, v(ti), vc))
     out[ok] = np.maximum(peak[ok], 1e-3)
     return out, acc
+
+
+#: the farthest :func:`free_corner` drops a corner's neighbours from it, mm
+FREE_CORNER_MAX_MM = 0.05
+
+
+def _plan_point(mv: PlannedMove, t_s: float) -> np.ndarray:
+    """The plan's nozzle point (mm) on move ``mv`` at print time ``t_s`` (clamped to the move)."""
+    return np.array(mv.start_mm[:3], float) + np.array(mv.unit[:3], float) * mv.distance_at(t_s)
+
+
+def _off_chord(pts: np.ndarray, p0: np.ndarray, p1: np.ndarray) -> float:
+    """The largest distance (mm) of ``pts`` (n, 3) from the segment ``p0 -> p1``."""
+    d = p1 - p0
+    L2 = float(d @ d)
+    if L2 <= 1e-18:
+        return float(np.max(np.linalg.norm(pts - p0, axis=1)))
+    s = np.clip((pts - p0) @ d / L2, 0.0, 1.0)
+    return float(np.max(np.linalg.norm(pts - (p0 + s[:, None] * d), axis=1)))
+
+
+def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, mv: PlannedMove | None,
+                next_move: PlannedMove | None, k_plan: np.ndarray | None, lim, tol_mm: float):
+    """A corner the plan passes at speed between samples ``k0 + b - 1`` and ``k0 + b`` where the
+    command does not follow the plan (so :func:`rest_end`, :func:`corner_tail` and
+    :func:`corner_lead` leave it): ``((point mm, time / dt, extruder mm, 1), n_tail, m_lead)`` or
+    None.
+
+    Written as sampled, the segment that straddles the corner and its neighbours are a sample's
+    chord each, and Klipper's centripetal rule ``v^2 <= d a tan(theta/2) / 2`` of those short
+    segments (``d`` a segment's length, ``a`` its acceleration: ``max_z_accel * d/|dz|`` on a
+    steep one) caps the junction below the command's speed there (the plan's ``v_j`` plus the
+    correction's velocity): on other_delta a travel into a lift turned at 9 mm/s instead of 13,
+    the lift ran 0.3 ms late and the feed solve ran the travel 0.8 ms early to share it (random
+    files).  The run instead ends on the command's corner: the plan's corner point moved by the
+    correction (the command minus the plan) interpolated between the two samples, at the plan's
+    time; the run's last ``n_tail`` samples and the next run's first ``m_lead`` samples within
+    :func:`corner_segment_mm` of it (for the command's speed, the turn between the segments that
+    replace them and the firmware's acceleration along each, ``lim``: a
+    :class:`~ffcomp.gcode.chain_plan.ChainLimits`; at most :data:`FREE_CORNER_MAX_MM`) are
+    dropped.  Only where the dropped samples lie within ``tol_mm`` of the chords that replace them
+    (the command is nearly straight either side of the plan's corner), and ``b_next`` (the end of
+    the next run, which starts at ``b``) leaves at least three samples after them.
+    """
+    from .chain_plan import segment_limits
+
+    if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
+            or b < 2 or b + 1 >= len(X) or b - a < 2 or b_next - b < 4 or mv.end_v_mm_s <= 1e-9):
+        return None
+    if k_plan[b - 1] < 0 or k_plan[b] != k_plan[b - 1] + 1 or abs(next_move.t_start_s - mv.t_end_s) > 1e-9:
+        return None
+    t1, t2 = k_plan[b - 1] * dt, k_plan[b] * dt
+    if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
+        return None
+    w = (mv.t_end_s - t1) / dt
+    c1 = X[b - 1] - _plan_point(mv, t1)
+    c2 = X[b] - _plan_point(next_move, t2)
+    pc = np.array(mv.end_mm[:3], float) + c1 + (c2 - c1) * w
+    # the command's own speed there (the correction adds its velocity to the plan's v_j)
+    v = min(float(np.linalg.norm(X[b - 1] - X[b - 2])), float(np.linalg.norm(X[b + 1] - X[b]))) / dt
+    lo = max(a, b - 1 - CORNER_LEAD_MAX_SAMPLES)
+    hi = min(b_next - 4, b + CORNER_LEAD_MAX_SAMPLES)
+    p_in, p_out = X[b - 2], X[b + 1]  # the far ends of the segments either side (first guess)
+    n = m = 0
+    for _ in range(3):
+        d_in, d_out = pc - p_in, p_out - pc
+        l_in, l_out = float(np.linalg.norm(d_in)), float(np.linalg.norm(d_out))
+        if l_in < 1e-6 or l_out < 1e-6:
+            return None
+        acc = segment_limits(lim, np.array([p_in, pc]), np.array([pc, p_out]), np.zeros(2))[1]
+        u_in, u_out = d_in / l_in, d_out / l_out
+        reach_in = corner_segment_mm(u_in, u_out, v, float(acc[0]), FREE_CORNER_MAX_MM)
+        reach_out = corner_segment_mm(u_in, u_out, v, float(acc[1]), FREE_CORNER_MAX_MM)
+        if reach_in is None or reach_out is None:
+            return None
+        n2 = 0
+        while b - 1 - n2 > lo and np.linalg.norm(X[b - 1 - n2] - pc) < reach_in:
+            n2 += 1
+        m2 = 0
+        while b + m2 < hi and np.linalg.norm(X[b + m2] - pc) < reach_out:
+            m2 += 1
+        if (n2, m2) == (n, m) and _ > 0:
+            break
+        n, m = n2, m2
+        p_in, p_out = X[b - 1 - n], X[b + m]
+    if n == 0 and m == 0:
+        return None
+    if np.linalg.norm(X[b - 1 - n] - pc) < reach_in or np.linalg.norm(X[b + m] - pc) < reach_out:
+        return None  # ran into the run's edge or the samples looked at
+    if n and _off_chord(X[b - n:b], X[b - 1 - n], pc) > tol_mm:
+        return None
+    if m and _off_chord(X[b:b + m], pc, X[b + m]) > tol_mm:
+        return None
+    k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
+    return (pc, k_end, float(mv.end_mm[3]), 1), n, m

@@ -48,7 +48,7 @@ from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
-from .plan_clock import REST_POINT_NEAR_MM, corner_lead, corner_tail, plan_speeds, rest_end, rest_start
+from .plan_clock import REST_POINT_NEAR_MM, corner_lead, corner_tail, free_corner, plan_speeds, rest_end, rest_start
 from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
@@ -183,6 +183,7 @@ class GcodeWriter:
         #: the points placed between forced ones take the least-squares values of the samples they
         #: stand for (:mod:`ffcomp.gcode.knot_fit`) instead of the samples' own
         self.fit_points = fit_points
+        self.free_corners = True  # end runs on free corners of the plan (plan_clock.free_corner)
         #: each change of extrusion ratio written on the junction where the firmware loses least
         #: (:func:`~ffcomp.gcode.extrusion.place_ratio_steps`; Klipper's feed solve only)
         self.place_steps = True
@@ -367,6 +368,7 @@ class GcodeWriter:
         ext_de = np.zeros(R)  # reference extrusion of the extruder-only moves written in this chunk
         ext_runs = []
         follows_hold = np.zeros(R, bool)
+        free_lead = 0  # the next run's first samples a free corner drops (plan_clock.free_corner)
         # an extruder-only move or dwell lasts its planned time, which starts and ends between
         # samples: the difference from the samples it spans is lateness the next segment must absorb
         pend, run_pre = self.pend_late_s, np.zeros(R)
@@ -384,9 +386,13 @@ class GcodeWriter:
                 went.append(k_go != last_k)
                 rest_go.append(k_go == last_k and at_rest_end and (mv is None or mv.start_v_mm_s <= 1e-9))
                 run_pre[r], pend = pend - (k_go - last_k) * self.dt, 0.0
-                leads.append(corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, last_pt,
-                                         self.moves.get(mv.index - 1))
-                             if self.chain is not None and mv is not None else None)
+                if free_lead:  # the previous run ended on a free corner (plan_clock.free_corner)
+                    leads.append((free_lead, None, None))
+                else:
+                    leads.append(corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, last_pt,
+                                             self.moves.get(mv.index - 1))
+                                 if self.chain is not None and mv is not None else None)
+                free_lead = 0
                 run_ids.append(r)
                 a_s.append(a)
                 n_s.append(b - a + 1)
@@ -398,8 +404,16 @@ class GcodeWriter:
                 last_pt, after_hold = end_pts[r], False
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
-                run_ends.append(end)
-                tails.append(self._corner_tail(k0, a, b, X, mv, on_plan, end) if self.chain is not None else None)
+                free = None
+                if end is None and self.free_corners and self.chain is not None and r + 1 < R:
+                    free = self._free_corner(k0, a, b, runs[r + 1], X, mv, k_plan, dense)
+                if free is not None:
+                    end, n_tail, free_lead = free
+                    run_ends.append(end)
+                    tails.append((n_tail, None, None) if n_tail else None)
+                else:
+                    run_ends.append(end)
+                    tails.append(self._corner_tail(k0, a, b, X, mv, on_plan, end) if self.chain is not None else None)
                 at_rest_end = end is not None
                 if end is not None:  # the run ends where and when the plan comes to rest
                     last_pt = np.round(end[0], 4)
@@ -635,6 +649,21 @@ class GcodeWriter:
         ch.seg_run = run_ids[srun][rows]
         self.last_pt = Pr[last[-1]].copy()
         return ch
+
+    def _free_corner(self, k0: int, a: int, b: int, nxt, X: np.ndarray, mv, k_plan, dense):
+        """:func:`~ffcomp.gcode.plan_clock.free_corner` into the next run ``nxt`` (a motion run that
+        starts at ``b``), with the firmware's accelerations along both moves; None where a sample it
+        would drop is written one by one (``dense``: the plan where limits bind)."""
+        a2, b2, _, mv2, kind2, _ = nxt
+        if mv is None or kind2 != MOVE or mv2 is None or a2 != b or mv2.index != mv.index + 1:
+            return None
+        out = free_corner(self.dt, k0, a, b, b2, X, mv, mv2, k_plan, self.chain, self.tol)
+        if out is None:
+            return None
+        _, n, m = out
+        if False and dense is not None and dense[b - 1 - n:b + m + 1].any():
+            return None
+        return out
 
     def _corner_tail(self, k0: int, a: int, b: int, X: np.ndarray, mv, on_plan, end):
         """:func:`~ffcomp.gcode.plan_clock.corner_tail` with the firmware's acceleration along the move."""
