@@ -269,6 +269,9 @@ def plan_speeds(dt: float, k0: int, mvs: list, a_s, offs, src, K, i, j, srun, we
 
 #: the farthest :func:`free_corner` drops a corner's neighbours from it, mm
 FREE_CORNER_MAX_MM = 0.05
+#: :func:`free_corner` acts where the sampled chords' junctions cap the speed below this share of
+#: the command's
+FREE_CORNER_SHARE = 0.9
 
 
 def _plan_point(mv: PlannedMove, t_s: float) -> np.ndarray:
@@ -309,7 +312,7 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     (the command is nearly straight either side of the plan's corner), and ``b_next`` (the end of
     the next run, which starts at ``b``) leaves at least three samples after them.
     """
-    from .chain_plan import segment_limits
+    from .chain_plan import junction_v2, segment_limits
 
     if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
             or b < 2 or b + 1 >= len(X) or b - a < 2 or b_next - b < 4 or mv.end_v_mm_s <= 1e-9):
@@ -323,8 +326,19 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     c1 = X[b - 1] - _plan_point(mv, t1)
     c2 = X[b] - _plan_point(next_move, t2)
     pc = np.array(mv.end_mm[:3], float) + c1 + (c2 - c1) * w
-    # the command's own speed there (the correction adds its velocity to the plan's v_j)
-    v = min(float(np.linalg.norm(X[b - 1] - X[b - 2])), float(np.linalg.norm(X[b + 1] - X[b]))) / dt
+    # as sampled: Klipper's limits at the two junctions either side of the straddling chord, against
+    # the command's speed there (the mean of the chords either side)
+    P = X[b - 2:b + 2]
+    d = np.diff(P, axis=0)
+    ln = np.linalg.norm(d, axis=1)
+    if np.any(ln < 1e-6):
+        return None
+    acc = segment_limits(lim, P[:-1], P[1:], np.zeros(3))[1]
+    jv = np.sqrt(junction_v2(lim, d / ln[:, None], np.zeros(3), acc, 2.0 * ln * acc))
+    need = 0.5 * (ln[:-1] + ln[1:]) / dt
+    if np.all(jv >= FREE_CORNER_SHARE * need):
+        return None  # the sampled chords already let the firmware through at the command's speed
+    v = min(ln[0], ln[2]) / dt  # the speed the corner must let through (the slower side's)
     lo = max(a, b - 1 - CORNER_LEAD_MAX_SAMPLES)
     hi = min(b_next - 4, b + CORNER_LEAD_MAX_SAMPLES)
     p_in, p_out = X[b - 2], X[b + 1]  # the far ends of the segments either side (first guess)
