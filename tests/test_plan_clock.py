@@ -10,6 +10,7 @@ from ffcomp.gcode.plan_clock import (
     REST_POINT_NEAR_MM,
     corner_lead,
     corner_tail,
+    free_corner,
     plan_speeds,
     rest_end,
     rest_start,
@@ -271,3 +272,94 @@ def test_a_run_comes_into_a_corner_with_a_last_segment_the_junction_allows(t0, v
     back = travel._replace(unit=(np.sqrt(0.5), 0.0, -np.sqrt(0.5), 0.0))
     far = corner_tail(DT, 100, a, b, X, up, on, back, end, 3000.0)
     assert far is not None and far[0] >= n_drop
+
+
+def _travel_into_lift(t_corner=0.01037, v_j=5.0, a=3000.0, out=(0.0, 0.0, 1.0)):
+    """A travel along +x (cruise 20 mm/s, braking at ``a`` to ``v_j``) into a lift up z (or along
+    ``out``) from ``v_j`` at ``a``, the corner at (0, 0, 1) at ``t_corner`` (s), between two
+    samples."""
+    vc = 20.0
+    td = (vc - v_j) / a
+    L = 0.5 * (vc + v_j) * td + vc * 0.02
+    A = PlannedMove(0, 1, "move", t_corner - 0.02 - td, (-L, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), L,
+                    (1.0, 0.0, 0.0, 0.0), vc, vc, v_j, a, 0.0, 0.02, td)
+    dz = 0.5
+    ta = (np.sqrt(v_j * v_j + 2 * a * dz) - v_j) / a
+    u = np.array(out) / np.linalg.norm(out)
+    B = PlannedMove(1, 2, "move", t_corner, (0.0, 0.0, 1.0, 0.0), (*(np.array([0.0, 0.0, 1.0]) + dz * u), 0.0), dz,
+                    (*u, 0.0), v_j, v_j + a * ta, v_j + a * ta, a, ta, 0.0, 0.0)
+    return A, B
+
+
+def _klipper_corner_v(lim, pts):
+    """Klipper's junction speed limits (mm/s) at the inner points of the chain ``pts`` (n, 3)."""
+    from ffcomp.gcode.chain_plan import junction_v2, segment_limits
+
+    d = np.diff(pts, axis=0)
+    ln = np.linalg.norm(d, axis=1)
+    acc = segment_limits(lim, pts[:-1], pts[1:], np.zeros(len(d)))[1]
+    return np.sqrt(junction_v2(lim, d / ln[:, None], np.zeros(len(d)), acc, 2.0 * ln * acc))
+
+
+def _sampled(A, B, wobble_mm=25e-3):
+    """The plan of ``A`` then ``B`` on 40 samples and a command: the plan plus a 60 Hz wobble along
+    x + z; returns (k, plan, command, correction function)."""
+    k = np.arange(0, 40)
+    t = k * DT
+
+    def corr(t):
+        w = 2 * np.pi * 60.0
+        return wobble_mm * np.sin(w * (t - A.t_end_s) + 0.3)[:, None] * np.array([1.0, 0.0, 1.0]) / np.sqrt(2)
+
+    plan = np.array([np.array(mv.start_mm[:3]) + np.array(mv.unit[:3]) * mv.distance_at(ti)
+                     for ti in t for mv in [A if ti < A.t_end_s else B]])
+    return k, plan, plan + corr(t), corr
+
+
+def test_a_free_corner_is_written_with_segments_klipper_lets_through_at_the_commands_speed():
+    """A travel into a lift that the plan turns at 5 mm/s, with a correction (a 60 Hz wobble of
+    25 um along x + z) that carries the command through the turn at 14-16 mm/s.  Sampled, the
+    chords either side of the corner are 14-16 um: Klipper's centripetal rule of such short
+    segments (``max_z_accel * d / |dz|`` on the steep ones) caps the junctions at 10.6 mm/s.
+    ``free_corner`` ends the run on the command's corner (the plan's corner moved by the
+    correction interpolated at the plan's time) and drops the samples within reach; the chords that
+    replace them hold the dropped samples within the tolerance, and Klipper's limits at the new
+    corner let the command through at 12.7 mm/s (the reach is capped at FREE_CORNER_MAX_MM: this
+    right-angled turn would need more for the whole speed)."""
+    from pathlib import Path
+
+    from ffcomp.gcode.chain_plan import ChainLimits
+    from ffcomp.profile import load_profile
+
+    prof = load_profile(Path(__file__).resolve().parents[1] / "samples" / "profiles" / "other_delta.toml")
+    lim = ChainLimits(prof, 1e5, 100.0)
+    A, B = _travel_into_lift()
+    k, plan, X, corr = _sampled(A, B)
+    b = int(np.ceil(A.t_end_s / DT))  # the first sample of the lift
+    a, tol = 0, 5e-3
+    # the case: as sampled, Klipper caps the junctions by the corner below the command's speed
+    v_cmd = np.linalg.norm(np.diff(X, axis=0), axis=1) / DT
+    v = min(v_cmd[b - 2], v_cmd[b])
+    jv = _klipper_corner_v(lim, X[b - 2:b + 2])
+    assert np.min(jv) < 0.8 * v
+    got = free_corner(DT, 100, a, b, len(k), X, A, B, k, lim, tol)
+    assert got is not None
+    (pc, k_end, e, appended), n, m = got
+    assert appended == 1 and n >= 1 and m >= 1 and k_end == pytest.approx(A.t_end_s / DT + 100, abs=1e-9)
+    # the command's corner: the plan's corner plus the correction there (to its curvature, < 1 um)
+    np.testing.assert_allclose(pc, np.array(A.end_mm[:3]) + corr(np.array([A.t_end_s]))[0], atol=1e-3)
+    # the chords that replace the dropped samples hold them within the tolerance
+    p_in, p_out = X[b - 1 - n], X[b + m]
+    for seg0, seg1, pts in ((p_in, pc, X[b - n:b]), (pc, p_out, X[b:b + m])):
+        dd = seg1 - seg0
+        s_ = np.clip((pts - seg0) @ dd / (dd @ dd), 0, 1)
+        assert np.max(np.linalg.norm(pts - (seg0 + s_[:, None] * dd), axis=1)) <= tol
+    # and Klipper lets the command through the new corner much faster
+    jv_new = _klipper_corner_v(lim, np.array([p_in, pc, p_out]))[0]
+    assert jv_new >= 1.15 * np.min(jv) and jv_new >= 0.85 * v
+    # none on a straight line (the sampled chords let the command through), or without three of the
+    # next run's samples past the dropped ones
+    A2, B2 = _travel_into_lift(out=(1.0, 0.0, 0.0))
+    k2, _, X2, _ = _sampled(A2, B2)
+    assert free_corner(DT, 100, a, b, len(k2), X2, A2, B2, k2, lim, tol) is None
+    assert free_corner(DT, 100, a, b, b + 2, X, A, B, k, lim, tol) is None

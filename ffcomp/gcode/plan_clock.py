@@ -272,6 +272,9 @@ FREE_CORNER_MAX_MM = 0.05
 #: :func:`free_corner` acts where the sampled chords' junctions cap the speed below this share of
 #: the command's
 FREE_CORNER_SHARE = 0.9
+#: :func:`free_corner` leaves the plan's turns sharper than this (the cosine between the moves'
+#: directions): a z travel's descent into a lift (107 deg), merged, ran 0.49 ms early
+FREE_CORNER_MIN_COS = 0.0
 
 
 def _plan_point(mv: PlannedMove, t_s: float) -> np.ndarray:
@@ -308,9 +311,11 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     :func:`corner_segment_mm` of it (for the command's speed, the turn between the segments that
     replace them and the firmware's acceleration along each, ``lim``: a
     :class:`~ffcomp.gcode.chain_plan.ChainLimits`; at most :data:`FREE_CORNER_MAX_MM`) are
-    dropped.  Only where the dropped samples lie within ``tol_mm`` of the chords that replace them
-    (the command is nearly straight either side of the plan's corner), and ``b_next`` (the end of
-    the next run, which starts at ``b``) leaves at least three samples after them.
+    dropped.  Only where the sampled chords cap the junctions below :data:`FREE_CORNER_SHARE` of
+    the command's speed there, the dropped samples lie within ``tol_mm`` of the chords that replace
+    them (the command is nearly straight either side of the plan's corner), the plan turns by at
+    most 90 deg (:data:`FREE_CORNER_MIN_COS`), and ``b_next`` (the end of the next run, which
+    starts at ``b``) leaves at least three samples after them.
     """
     from .chain_plan import junction_v2, segment_limits
 
@@ -318,6 +323,8 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
             or b < 2 or b + 1 >= len(X) or b - a < 2 or b_next - b < 4 or mv.end_v_mm_s <= 1e-9):
         return None
     if k_plan[b - 1] < 0 or k_plan[b] != k_plan[b - 1] + 1 or abs(next_move.t_start_s - mv.t_end_s) > 1e-9:
+        return None
+    if float(np.dot(mv.unit[:3], next_move.unit[:3])) < FREE_CORNER_MIN_COS:
         return None
     t1, t2 = k_plan[b - 1] * dt, k_plan[b] * dt
     if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
