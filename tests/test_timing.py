@@ -770,3 +770,30 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
     assert drift_ms() < 0.2  # +0.12 ms
     monkeypatch.setattr(writer, "CARRY_SAMPLES", 0)
     assert drift_ms() > 0.3  # the case: +0.42 ms
+
+
+@pytest.mark.parametrize("text, before_ms", [
+    # a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s
+    ("G90\nM83\nG28\nG1 X-0.146 Y2.773 Z5.060 F6033\nG1 E0.8 F2100\nG1 Z8.987 F10437\nG1 X11.359 Y37.107 F2089\n"
+     "G1 X-5.246 Y20.106 Z9.675 F9782\nG1 X-0.045 Y0.528 Z10.591 F4650\nG1 X-6.532 Y25.769 Z12.552 F7027\n"
+     "G1 Z13.928 F7619\nG1 Z16.684 E-0.5895 F6638\n", 0.796),
+    # a slow travel after a retraction into a lift
+    ("G90\nM83\nG28\nG1 X-13.417 Y7.069 Z3.337 F10273\nG1 E-0.8 F2100\nG1 X-12.078 Y24.036 F2490\n"
+     "G1 Z6.434 F6241\nG1 Z8.399 F2122\nG1 E-0.8 F2100\nG1 Z10.162 F2031\nG1 X-30.831 Y23.437 Z11.250 F10284\n"
+     "G1 X1.009 Y1.441 F7644\nG1 Z13.891 E-0.2612 F6463\n", 0.589),
+])
+def test_a_free_corner_into_a_steep_move_keeps_the_clock(tmp_path, monkeypatch, text, before_ms):
+    """Random files on other_delta whose command turns into a steep move faster than the plan (the
+    correction's velocity on top of the plan's junction speed) where neither side is pinned: the
+    1 ms chords either side of the corner let Klipper's centripetal rule (``max_z_accel * d/|dz|``
+    on the steep side) cap the junction below the command's speed, the move after it ran late and
+    the feed solve ran the one before early to share it.  The writer now ends the run on the
+    command's corner with longer chords either side (``plan_clock.free_corner``)."""
+    from ffcomp.gcode.writer import GcodeWriter
+
+    prof = load_profile(OTHER)
+    drift_ms, _ = _random_file_drift(tmp_path, text, prof)
+    assert abs(drift_ms) < 0.2, drift_ms
+    monkeypatch.setattr(GcodeWriter, "_free_corner", lambda self, *a: None)
+    before, _ = _random_file_drift(tmp_path, text, prof)
+    assert abs(before) > 0.45 and abs(before) == pytest.approx(before_ms, abs=0.05)  # the case

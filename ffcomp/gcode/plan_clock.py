@@ -272,9 +272,9 @@ FREE_CORNER_MAX_MM = 0.05
 #: :func:`free_corner` acts where the sampled chords' junctions cap the speed below this share of
 #: the command's
 FREE_CORNER_SHARE = 0.9
-#: :func:`free_corner` leaves the plan's turns sharper than this (the cosine between the moves'
-#: directions): a z travel's descent into a lift (107 deg), merged, ran 0.49 ms early
-FREE_CORNER_MIN_COS = 0.0
+#: ... and where the written corner's tightest junction (against the command's speed) beats the
+#: sampled chain's by at least this factor
+FREE_CORNER_GAIN = 1.1
 
 
 def _plan_point(mv: PlannedMove, t_s: float) -> np.ndarray:
@@ -313,18 +313,17 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     :class:`~ffcomp.gcode.chain_plan.ChainLimits`; at most :data:`FREE_CORNER_MAX_MM`) are
     dropped.  Only where the sampled chords cap the junctions below :data:`FREE_CORNER_SHARE` of
     the command's speed there, the dropped samples lie within ``tol_mm`` of the chords that replace
-    them (the command is nearly straight either side of the plan's corner), the plan turns by at
-    most 90 deg (:data:`FREE_CORNER_MIN_COS`), and ``b_next`` (the end of the next run, which
+    them (the command is nearly straight either side of the plan's corner), the tightest of the
+    written junctions (the corner and the two before and after it) gains on the sampled chain's
+    by :data:`FREE_CORNER_GAIN`, and ``b_next`` (the end of the next run, which
     starts at ``b``) leaves at least three samples after them.
     """
-    from .chain_plan import junction_v2, segment_limits
+    from .chain_plan import segment_limits
 
     if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
             or b < 2 or b + 1 >= len(X) or b - a < 2 or b_next - b < 4 or mv.end_v_mm_s <= 1e-9):
         return None
     if k_plan[b - 1] < 0 or k_plan[b] != k_plan[b - 1] + 1 or abs(next_move.t_start_s - mv.t_end_s) > 1e-9:
-        return None
-    if float(np.dot(mv.unit[:3], next_move.unit[:3])) < FREE_CORNER_MIN_COS:
         return None
     t1, t2 = k_plan[b - 1] * dt, k_plan[b] * dt
     if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
@@ -335,15 +334,11 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     pc = np.array(mv.end_mm[:3], float) + c1 + (c2 - c1) * w
     # as sampled: Klipper's limits at the two junctions either side of the straddling chord, against
     # the command's speed there (the mean of the chords either side)
-    P = X[b - 2:b + 2]
-    d = np.diff(P, axis=0)
-    ln = np.linalg.norm(d, axis=1)
-    if np.any(ln < 1e-6):
+    jv = _junction_speeds(lim, X[b - 2:b + 2])
+    if jv is None:
         return None
-    acc = segment_limits(lim, P[:-1], P[1:], np.zeros(3))[1]
-    jv = np.sqrt(junction_v2(lim, d / ln[:, None], np.zeros(3), acc, 2.0 * ln * acc))
-    need = 0.5 * (ln[:-1] + ln[1:]) / dt
-    if np.all(jv >= FREE_CORNER_SHARE * need):
+    ln = np.linalg.norm(np.diff(X[b - 2:b + 2], axis=0), axis=1)
+    if np.all(jv >= FREE_CORNER_SHARE * 0.5 * (ln[:-1] + ln[1:]) / dt):
         return None  # the sampled chords already let the firmware through at the command's speed
     v = min(ln[0], ln[2]) / dt  # the speed the corner must let through (the slower side's)
     lo = max(a, b - 1 - CORNER_LEAD_MAX_SAMPLES)
@@ -379,5 +374,31 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
         return None
     if m and _off_chord(X[b:b + m], pc, X[b + m]) > tol_mm:
         return None
+    # the junctions either side move too (the chords next to them change length): the corner is
+    # written so only where the tightest of them, against the command's speed, gains on the sampled
+    # chain's (a corner whose new in-chord was shorter than the sample it replaced capped the
+    # junction before it, a z turn in cube_prusa on other_delta: +0.26 ms)
+    S = X[b - 2 - n:b + m + 2]
+    jv_s = _junction_speeds(lim, S)
+    jv_n = _junction_speeds(lim, np.array([S[0], S[1], pc, S[-2], S[-1]]))
+    if jv_s is None or jv_n is None:
+        return None
+    ln = np.linalg.norm(np.diff(S, axis=0), axis=1)
+    need = 0.5 * (ln[:-1] + ln[1:]) / dt
+    if np.min(jv_n / np.array([need[0], v, need[-1]])) < FREE_CORNER_GAIN * np.min(jv_s / need):
+        return None
     k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
     return (pc, k_end, float(mv.end_mm[3]), 1), n, m
+
+
+def _junction_speeds(lim, P: np.ndarray) -> np.ndarray | None:
+    """Klipper's junction speed limits (mm/s; corner rules, no extrusion) at the inner points of the
+    chain ``P`` (n, 3), or None where two points coincide."""
+    from .chain_plan import junction_v2, segment_limits
+
+    d = np.diff(P, axis=0)
+    ln = np.linalg.norm(d, axis=1)
+    if np.any(ln < 1e-6):
+        return None
+    acc = segment_limits(lim, P[:-1], P[1:], np.zeros(len(d)))[1]
+    return np.sqrt(junction_v2(lim, d / ln[:, None], np.zeros(len(d)), acc, 2.0 * ln * acc))
