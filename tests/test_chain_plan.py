@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ffcomp.gcode.chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits
+from ffcomp.gcode.chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits, z_accel_needed
 from ffcomp.gcode.planner import GcodePlan
 from ffcomp.profile import load_profile
 
@@ -75,3 +75,38 @@ def test_trapezoids_plan_a_batch_of_feed_rates_bit_for_bit():
             one = trapezoids(dist, cv2[b], acc, jv, s0, e0[b] if np.ndim(e0) else e0)
             for x, y in zip(batch, one):
                 assert np.array_equal(x[b], y)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), z_share=st.floats(0.0, 3.0))
+def test_the_max_z_accel_a_junction_needs_is_what_klippers_rules_ask(seed, z_share):
+    """``z_accel_needed`` against Klipper's own junction rules (:func:`junction_v2`): with
+    ``max_z_accel`` at a junction's stated need, the rules let the chain through that junction at the
+    mean of its two segments' speeds; where the corner rules (not the change of speed) set the
+    need, 1 % less does not (the need is the least).  1 ms segments of a wobbling command near the
+    centre; the header's ACCEL lifted so that only ``max_z_accel * d / |dz|`` binds."""
+    rng = np.random.default_rng(seed)
+    n = 8
+    d = rng.normal(size=(n, 3)) * 0.02 + np.array([0.01, 0.0, 0.0])
+    d[:, 2] *= z_share
+    dt = np.full(n, 1e-3)
+    lim = ChainLimits(load_profile(OTHER), 1e5, 100.0)  # the compensated file's header (its jd)
+    lim.accel = lim.cfg_accel = 1e12
+    need = z_accel_needed(d, dt, lim.jd)
+    along = z_accel_needed(d, dt, None)
+    assert np.all(need >= along) and np.all(np.isfinite(need))
+    pts = np.vstack([np.zeros(3), np.cumsum(d, 0)]) + np.array([0.0, 0.0, 5.0])
+    ln = np.linalg.norm(d, axis=1)
+    v2 = (0.5 * (ln[1:] + ln[:-1]) / dt[0]) ** 2
+
+    def jv2_at(j, mza):
+        lim.max_z_accel = mza
+        acc = segment_limits(lim, pts[:-1], pts[1:], np.zeros(n))[1]
+        return junction_v2(lim, d / ln[:, None], np.zeros(n), acc, 2 * ln * acc)[j]
+
+    for j in range(n - 1):
+        if need[j] <= 1.0:  # (no z to speak of)
+            continue
+        assert jv2_at(j, need[j] * (1 + 1e-9)) >= v2[j] * (1 - 1e-9)
+        if need[j] > max(along[j] * 1.02, 1.0):
+            assert jv2_at(j, need[j] * 0.99) < v2[j]

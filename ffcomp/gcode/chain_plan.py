@@ -188,3 +188,44 @@ def trapezoids(dist: np.ndarray, cruise_v2: np.ndarray, acc: np.ndarray, junc_v2
     t2 = np.divide(cruise_d, vc, out=np.full(shape, np.inf), where=vc > 0)
     t3 = np.divide(decel_d, (vo + vc) * 0.5, out=np.zeros(shape), where=decel_d > 0)
     return t1, t2, t3, vi, vc, vo
+
+
+def z_accel_needed(d: np.ndarray, dt: np.ndarray, jd_mm: float | None) -> np.ndarray:
+    """The ``max_z_accel`` (mm/s^2) each junction of a chain of segments needs for Klipper to run
+    it at the segments' own speeds: length ``n - 1`` for ``d`` (n, 3) segment vectors (mm) and ``dt``
+    (n,) their durations (s).
+
+    Klipper's delta caps a segment's acceleration at ``max_z_accel * d / |dz|``, so ``max_z_accel``
+    must cover, on the steeper of the two segments at a junction, the change of speed there
+    (``|v_i - v_{i-1}|`` over the mean of their durations: a command whose speed ramps through the
+    junction) times ``|dz| / d``; and, with junction deviation ``jd_mm`` (None: not checked), the
+    acceleration each segment's corner rules need to pass the junction at the mean of the two
+    speeds, ``v^2 / min(R_jd jd, 2 d tan(theta/2) / 4)``, times its ``|dz| / d`` (see
+    :func:`junction_v2`).  A direction change at constant speed needs no ``max_z_accel`` beyond
+    what the corner rules ask: it is not an acceleration along either segment.
+    """
+    ln = np.linalg.norm(d, axis=1)
+    ok = ln > 0
+    u = np.where(ok[:, None], d / np.where(ok, ln, 1.0)[:, None], 0.0)
+    sp = ln / dt
+    uz = np.abs(u[:, 2])
+    along = np.abs(np.diff(sp)) / (0.5 * (dt[1:] + dt[:-1])) * np.maximum(uz[1:], uz[:-1])
+    if jd_mm is None or len(d) < 2:
+        return along
+    jc = -np.einsum("ij,ij->i", u[1:], u[:-1])
+    sin2 = np.sqrt(np.maximum(0.5 * (1.0 - jc), 0.0))
+    cos2 = np.sqrt(np.maximum(0.5 * (1.0 + jc), 0.0))
+    v2 = (0.5 * (sp[1:] + sp[:-1])) ** 2
+    # (a reversal, sin2 = 0, stops the firmware whatever the limits: no max_z_accel helps there)
+    turn = (sin2 < 1.0 - 1e-12) & (sin2 > 1e-9) & (cos2 > 1e-12) & ok[1:] & ok[:-1]
+    corner = np.zeros(len(jc))
+    if turn.any():
+        r_jd = sin2[turn] / (1.0 - sin2[turn])
+        qt = 0.25 * sin2[turn] / cos2[turn]
+        need = []
+        for side in (1, 0):  # the segment after, then before the junction
+            l_s = ln[side:len(ln) - 1 + side][turn]
+            a_s = v2[turn] / np.minimum(r_jd * jd_mm, 2.0 * l_s * qt)
+            need.append(a_s * uz[side:len(uz) - 1 + side][turn])
+        corner[turn] = np.maximum(*need)
+    return np.maximum(along, corner)

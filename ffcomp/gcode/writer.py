@@ -42,7 +42,7 @@ from typing import IO, Iterator, NamedTuple
 import numpy as np
 
 from ..linalg3 import max_abs3
-from .chain_plan import ChainLimits, segment_limits
+from .chain_plan import ChainLimits, segment_limits, z_accel_needed
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
@@ -51,6 +51,9 @@ from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import REST_POINT_NEAR_MM, corner_lead, corner_tail, free_corner, plan_speeds, rest_end, rest_start
 from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
+
+#: the bins of :attr:`WriterStats.z_need_hist`, mm/s^2 (1 % wide, 1 to 1e8)
+Z_NEED_EDGES = np.geomspace(1.0, 1e8, 1853)
 
 __all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
 
@@ -111,8 +114,24 @@ class WriterStats:
     micro_holds: int = 0
     peak_speed_mm_s: float = 0.0
     peak_accel_mm_s2: float = 0.0
-    #: largest ``accel * |dz| / d`` between segments: the max_z_accel the intended timing needs
+    #: largest max_z_accel a junction between segments needs to run at the intended speeds
+    #: (:func:`~ffcomp.gcode.chain_plan.z_accel_needed`)
     peak_z_accel_mm_s2: float = 0.0
+    #: junctions between moving segments, and those that need more than the profile's max_z_accel
+    junctions: int = 0
+    z_accel_short: int = 0
+    #: how many junctions need each max_z_accel (counts in the bins of :data:`Z_NEED_EDGES`; those
+    #: with no z need are not counted): :meth:`z_accel_quantile`
+    z_need_hist: np.ndarray = field(default_factory=lambda: np.zeros(len(Z_NEED_EDGES) - 1, np.int64))
+
+    def z_accel_quantile(self, share: float) -> float:
+        """The max_z_accel (mm/s^2; a bin's upper edge, within 1 %) that ``share`` of the junctions
+        with a z need need at most; 0 if none."""
+        total = int(self.z_need_hist.sum())
+        if total == 0:
+            return 0.0
+        k = int(np.searchsorted(np.cumsum(self.z_need_hist), share * total - 1e-9))
+        return float(Z_NEED_EDGES[k + 1])
     #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
     peak_z_velocity_mm_s: float = 0.0
     extruded_mm: float = 0.0
@@ -157,6 +176,7 @@ class GcodeWriter:
         self.n_replaced = 0  # source line numbers written as motion and forgotten
         self.done_moves: set[int] = set()  # planned move indices written
         self.prev_v = None
+        self.prev_seg = None  # (vector mm, duration s) of the last moving segment written
         self.after_hold = False
         self.at_rest_end = False  # the last motion run ended on the plan's rest point (rest_end)
         #: write extruder-only moves up to EXTRUDE_SPARE_S faster (the command moved on during them)
@@ -607,18 +627,27 @@ class GcodeWriter:
         self.stats.segments += int(moving.sum())
         self.stats.extruded_mm += float(np.sum(np.maximum(de[moving], 0.0)))
         if moving.any():
-            vv = d[moving] / dt[moving][:, None]
+            dm, tm = d[moving], dt[moving]
+            vv = dm / tm[:, None]
             self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[moving].max()))
             if self.prev_v is not None:
                 vv = np.vstack([self.prev_v[None], vv])
+                dm, tm = np.vstack([self.prev_seg[0][None], dm]), np.r_[self.prev_seg[1], tm]
             if len(vv) > 1:
                 acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[moving][-len(vv) + 1:], self.dt)
                 self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
                 sp = np.linalg.norm(vv[1:], axis=1)
                 uz = np.abs(vv[1:, 2]) / np.maximum(sp, 1e-12)
-                self.stats.peak_z_accel_mm_s2 = max(self.stats.peak_z_accel_mm_s2, float(np.max(acc * uz)))
+                zneed = z_accel_needed(dm, tm, self.chain.jd if self.chain is not None else None)
+                self.stats.peak_z_accel_mm_s2 = max(self.stats.peak_z_accel_mm_s2, float(np.max(zneed)))
+                self.stats.junctions += len(zneed)
+                self.stats.z_accel_short += int(np.count_nonzero(zneed > self.max_z_accel * (1 + 1e-9)))
+                zn = zneed[zneed > 0]
+                if zn.size:
+                    self.stats.z_need_hist += np.histogram(np.clip(zn, Z_NEED_EDGES[0], Z_NEED_EDGES[-1] * 0.999),
+                                                           Z_NEED_EDGES)[0]
                 self.stats.peak_z_velocity_mm_s = max(self.stats.peak_z_velocity_mm_s, float(np.max(sp * uz)))
-            self.prev_v = vv[-1]
+            self.prev_v, self.prev_seg = vv[-1], (dm[-1], float(tm[-1]))
         # ---- the lines (one per segment) and the self-check's table
         xs, ys, zs = (Pr[j] + 0.0).T.tolist()  # (+ 0.0: a coordinate rounded to -0.0 prints as 0.0000)
         pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms

@@ -151,9 +151,6 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         summ.header_accel_mm_s2 = accel
         summ.peak_command_accel_mm_s2 = bd.stats.peak_accel_mm_s2
         needs = firmware_needs(profile, opts, accel, bd.stats)
-        lim_notes = limit_warnings(profile, needs) if bd.firmware == "klipper" else []
-        summ.warnings += len(lim_notes)
-        summ.notes.extend(lim_notes)
         head, foot = header_lines(profile, opts, src, accel, needs, summ.firmware_retractions)
         if bd.firmware == "klipper":
             summ.input_shaper = shaper_summary(profile)
@@ -179,6 +176,10 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 judge_pieces(bd, summ, opts, profile)
             else:
                 self_check(final_tmp, qfile, profile, geom, summ, opts, segfile, len(head))
+        if bd.firmware == "klipper":  # (after the self-check: its drift is what the limits cost)
+            lim_notes = limit_warnings(profile, needs, bd.stats, summ.self_check_drift_ms, summ.self_check_abs_max_um)
+            summ.warnings += len(lim_notes)
+            summ.notes.extend(lim_notes)
         # success: move into place
         if out_path is None:
             import shutil
