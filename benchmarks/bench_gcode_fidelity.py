@@ -82,6 +82,18 @@ def zhop_squares(layers: int = 3, side: float = 30.0, gap: float = 50.0, lift: f
     return pw
 
 
+def repair_from_args(pairs: list[str]):
+    """A :class:`~ffcomp.compensate.pin_repair.RepairConfig` from ``KEY=VALUE`` strings (``--repair``)."""
+    import dataclasses
+
+    from ffcomp.compensate.pin_repair import RepairConfig
+
+    types = {f.name: f.type for f in dataclasses.fields(RepairConfig)}
+    kv = dict(r.split("=", 1) for r in pairs)
+    conv = {"bool": lambda v: v.lower() in ("1", "true", "yes"), "int": int, "float": float}
+    return RepairConfig(**{k: conv[str(types[k])](v) for k, v in kv.items()})
+
+
 def files(quick: bool) -> dict[str, str]:
     """The benchmark's G-code files (deterministic), name -> text."""
     layers = 2 if quick else 3
@@ -151,14 +163,7 @@ def main() -> None:
     if a.pin_holds:
         extra["pin_repair"] = a.pin_holds == "1"
     if a.repair:
-        import dataclasses
-
-        from ffcomp.compensate.pin_repair import RepairConfig
-
-        types = {f.name: f.type for f in dataclasses.fields(RepairConfig)}
-        kv = dict(r.split("=", 1) for r in a.repair)
-        conv = {"bool": lambda v: v.lower() in ("1", "true", "yes"), "int": int, "float": float}
-        extra["repair"] = RepairConfig(**{k: conv[str(types[k])](v) for k, v in kv.items()})
+        extra["repair"] = repair_from_args(a.repair)
     for pname, (prof, truth) in profiles.items():
         if pname not in a.profiles.split(","):
             continue

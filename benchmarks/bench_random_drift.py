@@ -1,6 +1,7 @@
 """Benchmark: the clock on small random files, on both profiles.
 
-Run: ``python benchmarks/bench_random_drift.py [--n N] [--seed S]``.  Generates ``N`` small random
+Run: ``python benchmarks/bench_random_drift.py [--n N] [--seed S] [--repair KEY=VALUE] [--dump DIR]``.
+Generates ``N`` small random
 G-code files (deterministic for a seed: optionally G28, 3-8 moves inside a 40 mm radius, z 0.2-8 mm
 rising, some z-only, some extruding or retracting, some extruder-only moves between them),
 compensates each on the default profile and on ``samples/profiles/other_delta.toml`` alternately
@@ -57,12 +58,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--n", type=int, default=80, help="files (half on each profile)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--repair", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RepairConfig field of the pin repair (as bench_gcode_fidelity.py --repair)")
     ap.add_argument("--dump", type=Path, default=None,
                     help="write every file that drifts more than 0.2 ms here, as PROFILE-K.gcode, to trace")
     a = ap.parse_args()
     rng = np.random.default_rng(a.seed)
     profs = [("default", default_profile()), ("other_delta", load_profile(ROOT / "samples/profiles/other_delta.toml"))]
     tmp = Path(tempfile.mkdtemp(prefix="bench_random_"))
+    extra = {}
+    if a.repair:
+        from bench_gcode_fidelity import repair_from_args
+
+        extra["repair"] = repair_from_args(a.repair)
     res: dict[str, list] = {name: [] for name, _ in profs}
     for k in range(a.n):
         name, prof = profs[k % 2]
@@ -71,7 +79,8 @@ def main() -> None:
         src.write_text(text)
         try:
             s = compensate_file(str(src), str(tmp / "o.gcode"), prof,
-                                CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+                                CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9,
+                                                  **extra))
             res[name].append((abs(s.self_check_drift_ms), s.self_check_max_um, s.self_check_abs_max_um, text))
             if a.dump is not None and abs(s.self_check_drift_ms) > 0.2:
                 a.dump.mkdir(parents=True, exist_ok=True)
