@@ -365,21 +365,22 @@ def test_a_free_corner_is_written_with_segments_klipper_lets_through_at_the_comm
     assert free_corner(DT, 100, a, b, b + 2, X, A, B, k, lim, tol) is None
 
 
-def test_the_plain_python_corner_gate_equals_klippers_vectorised_rules():
-    """``free_corner`` asks at every free run's end whether the sampled chords already let the
-    command through (in plain Python: the numpy version cost 2.7 s of 17 on the plate's first
-    40,000 lines); it must answer as :func:`junction_v2` with :func:`segment_limits` (the delta cap,
-    the slow zones near the print radius) do."""
+def test_the_corner_gates_equal_klippers_rules():
+    """``free_corner`` first asks whether the sampled chords already let the command through: in
+    plain Python (``_sampled_corner_ok``) and, for every run end of a writer's chunk at once,
+    vectorised (``sampled_corners_ok``; a numpy call per run end cost 2.7 s of 17 on the plate's
+    first 40,000 lines).  Both must answer as :func:`junction_v2` with :func:`segment_limits` (the
+    delta cap, the slow zones near the print radius) do."""
     from pathlib import Path
 
     from ffcomp.gcode.chain_plan import ChainLimits
-    from ffcomp.gcode.plan_clock import FREE_CORNER_SHARE, _junction_speeds, _sampled_corner_ok
+    from ffcomp.gcode.plan_clock import FREE_CORNER_SHARE, _junction_speeds, _sampled_corner_ok, sampled_corners_ok
     from ffcomp.profile import load_profile
 
     lim = ChainLimits(load_profile(Path(__file__).resolve().parents[1] / "samples/profiles/other_delta.toml"),
                       1e5, 100.0)
     rng = np.random.default_rng(3)
-    answers = []
+    answers, chains = [], []
     for _ in range(3000):
         start = rng.uniform(-125, 125, 3) * np.array([1, 1, 0.2]) + np.array([0, 0, 30])
         u = rng.normal(size=3) * np.array([1, 1, rng.uniform(0, 3)])
@@ -392,4 +393,9 @@ def test_the_plain_python_corner_gate_equals_klippers_vectorised_rules():
         got = _sampled_corner_ok(lim, P.tolist(), DT)
         assert got == want
         answers.append(got)
+        chains.append(P)
     assert 0.1 < np.mean(answers) < 0.9  # both answers occur
+    # and the writer's vectorised first look over a chunk's run ends: the same answers
+    X = np.concatenate(chains)
+    bs = np.arange(len(chains)) * 4 + 2
+    assert sampled_corners_ok(lim, X, bs, DT).tolist() == answers

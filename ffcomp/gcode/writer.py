@@ -48,7 +48,16 @@ from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
-from .plan_clock import REST_POINT_NEAR_MM, corner_lead, corner_tail, free_corner, plan_speeds, rest_end, rest_start
+from .plan_clock import (
+    REST_POINT_NEAR_MM,
+    corner_lead,
+    corner_tail,
+    free_corner,
+    plan_speeds,
+    rest_end,
+    rest_start,
+    sampled_corners_ok,
+)
 from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
 
@@ -391,6 +400,7 @@ class GcodeWriter:
         ext_runs = []
         follows_hold = np.zeros(R, bool)
         free_lead = 0  # the next run's first samples a free corner drops (plan_clock.free_corner)
+        look = self._corners_to_look_at(X, runs)
         # an extruder-only move or dwell lasts its planned time, which starts and ends between
         # samples: the difference from the samples it spans is lateness the next segment must absorb
         pend, run_pre = self.pend_late_s, np.zeros(R)
@@ -427,7 +437,7 @@ class GcodeWriter:
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 free = None
-                if end is None and self.free_corners and self.chain is not None and r + 1 < R:
+                if end is None and r in look:
                     free = self._free_corner(k0, a, b, runs[r + 1], X, mv, k_plan, on_plan)
                 if free is not None:
                     end, n_tail, free_lead = free
@@ -681,6 +691,19 @@ class GcodeWriter:
         ch.seg_run = run_ids[srun][rows]
         self.last_pt = Pr[last[-1]].copy()
         return ch
+
+    def _corners_to_look_at(self, X: np.ndarray, runs: list) -> set:
+        """The motion runs of a chunk that end on a corner into another motion run where the sampled
+        chords do not let the command through (:func:`~ffcomp.gcode.plan_clock.sampled_corners_ok`):
+        the only ones :meth:`_free_corner` is asked about."""
+        if not self.free_corners or self.chain is None:
+            return set()
+        rs = [r for r in range(len(runs) - 1) if runs[r].kind == MOVE and runs[r + 1].kind == MOVE
+              and 2 <= runs[r].end < len(X) - 1]
+        if not rs:
+            return set()
+        ok = sampled_corners_ok(self.chain, X, np.array([runs[r].end for r in rs]), self.dt)
+        return {r for r, o in zip(rs, ok.tolist()) if not o}
 
     def _free_corner(self, k0: int, a: int, b: int, nxt, X: np.ndarray, mv, k_plan, on_plan):
         """:func:`~ffcomp.gcode.plan_clock.free_corner` into the next run ``nxt`` (a motion run of
