@@ -337,9 +337,8 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
         return None
     # as sampled: Klipper's limits at the two junctions either side of the straddling chord, against
-    # the command's speed there (the mean of the chords either side); in plain Python, as the
-    # writer asks at the end of every free run (30,000 times in the plate's first 40,000 lines)
-    if _sampled_corner_ok(lim, X[b - 2:b + 2].tolist(), dt):
+    # the command's speed there (the writer asks this of a whole chunk's run ends at once first)
+    if sampled_corners_ok(lim, X, np.array([b]), dt)[0]:
         return None
     ln = np.linalg.norm(np.diff(X[b - 2:b + 2], axis=0), axis=1)
     v = min(ln[0], ln[2]) / dt  # the speed the corner must let through (the slower side's)
@@ -397,45 +396,15 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     return (pc, k_end, float(mv.end_mm[3]), 1), n, m
 
 
-def _sampled_corner_ok(lim, P: list, dt: float) -> bool:
-    """Whether Klipper's corner rules (:func:`~ffcomp.gcode.chain_plan.junction_v2`, no extrusion;
-    each chord's acceleration as :func:`~ffcomp.gcode.chain_plan.segment_limits` gives it) let the
-    chain of four points ``P`` (lists, mm) through both inner junctions at
-    :data:`FREE_CORNER_SHARE` of the command's speed there (the mean of the chords either side, per
-    ``dt``); True where two points coincide (nothing to do)."""
-    segs = []
-    for i in range(3):
-        (x0, y0, z0), (x1, y1, z1) = P[i], P[i + 1]
-        dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
-        ln = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if ln < 1e-6:
-            return True
-        a = lim.accel
-        if dz != 0.0:
-            a = min(a, lim.max_z_accel * ln / abs(dz))
-        xy2 = max(x0 * x0 + y0 * y0, x1 * x1 + y1 * y1)
-        if xy2 > lim.slow_xy2:
-            a = min(a, lim.cfg_accel * (0.25 if xy2 > lim.very_slow_xy2 else 0.5))
-        segs.append((dx / ln, dy / ln, dz / ln, ln, a))
-    for s0, s1 in zip(segs[:-1], segs[1:]):
-        jc = -(s0[0] * s1[0] + s0[1] * s1[1] + s0[2] * s1[2])
-        sin2 = math.sqrt(max(0.5 * (1.0 - jc), 0.0))
-        cos2 = math.sqrt(max(0.5 * (1.0 + jc), 0.0))
-        if not (1.0 - sin2 > 0.0 and cos2 > 0.0):
-            continue  # a straight line: no corner rule
-        r_jd, qt = sin2 / (1.0 - sin2), 0.25 * sin2 / cos2
-        v2 = min(r_jd * lim.jd * s1[4], r_jd * lim.jd * s0[4], 2.0 * s1[3] * s1[4] * qt, 2.0 * s0[3] * s0[4] * qt)
-        need = FREE_CORNER_SHARE * 0.5 * (s0[3] + s1[3]) / dt
-        if v2 < need * need:
-            return False
-    return True
-
-
 def sampled_corners_ok(lim, X: np.ndarray, bs: np.ndarray, dt: float) -> np.ndarray:
-    """:func:`_sampled_corner_ok` for the corners between samples ``bs - 1`` and ``bs`` of ``X``
-    (each ``2 <= b < len(X) - 1``) at once, with :func:`~ffcomp.gcode.chain_plan.junction_v2`: the
-    writer's first look at every free run's end of a chunk in one pass (0.36 s of the plate's
-    first 40,000 lines in plain Python, call by call)."""
+    """Whether Klipper's corner rules (:func:`~ffcomp.gcode.chain_plan.junction_v2`, no extrusion;
+    each chord's acceleration as :func:`~ffcomp.gcode.chain_plan.segment_limits` gives it: the
+    delta cap, the slow zones) let the sampled chords either side of the corners between samples
+    ``bs - 1`` and ``bs`` of ``X`` (each ``2 <= b < len(X) - 1``) through their two junctions at
+    :data:`FREE_CORNER_SHARE` of the command's speed there (the mean of the chords either side, per
+    ``dt``), as an array; True where two samples coincide (nothing to do).  The writer asks it of
+    every free run's end of a chunk in one pass: a call per corner cost 2.7 s of 17 on the plate's
+    first 40,000 lines."""
     P = X[bs[:, None] + np.arange(-2, 2)]  # (k, 4, 3)
     A, B = P[:, :-1].reshape(-1, 3), P[:, 1:].reshape(-1, 3)
     d = B - A
