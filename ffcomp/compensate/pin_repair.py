@@ -94,6 +94,11 @@ class RepairConfig:
         cylinder_prusa's events beyond 0.2 ms 36 -> 3, cube_wipe_prusa -0.28 -> +0.17 ms; the price
         is the printed lines' contour on cube_prusa (truth plant) 2.54 -> 2.67 um (lag 5.34 -> 5.39);
         1 ms kept half of the clock's gain for 2.62 um
+    lead_in_extruder : the lead-ins above also run into a pinned move that the plan enters at
+        Klipper's extruder junction speed, ``instantaneous_corner_velocity / |r - r_prev|`` (a travel
+        into an extruding or retracting lift: the free command came into that corner at 5-7 mm/s
+        where the rule allows 1.4, and the lift ran 0.3-0.6 ms late;
+        :func:`~ffcomp.pipeline.limited_moves.enters_by_extruder`)
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
         acceleration scales above are divided by this (the firmware caps those segments and their
         junctions at ``max_z_accel * d/|dz|``)
@@ -142,6 +147,7 @@ class RepairConfig:
     lead_in_s: float = 0.0025
     lead_in_z_s: float = 0.002
     lead_in_printed_s: float = 0.002
+    lead_in_extruder: bool = True
     still_near_steep: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0

@@ -37,7 +37,17 @@ from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, s
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings, shaper_summary
-from .limited_moves import LimitBound, ZLimited, after_firmware, lead_into, moves_where, z_held, z_hop, z_moving
+from .limited_moves import (
+    LimitBound,
+    ZLimited,
+    after_firmware,
+    enters_by_extruder,
+    lead_into,
+    moves_where,
+    z_held,
+    z_hop,
+    z_moving,
+)
 from .options import (  # noqa: F401  (re-exported: the run's options and summary live in options.py)
     JUMP_M,
     PIECE_START_FEED_MM_MIN,
@@ -392,11 +402,15 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
             def pinned_z(mv) -> bool:  # a pinned move that max_z_accel binds (a z-hop's move down)
                 return mv.kind == "move" and zlim is not None and zlim.limited(mv) and pinned(mv)
 
+            def led_in(mv) -> bool:  # the moves the one before runs into on the plan (lead_into)
+                return pinned_z(mv) or (opts.repair.lead_in_extruder and chain is not None
+                                        and enters_by_extruder(mv, moves, chain.instant_corner_v) and pinned(mv))
+
             def pins(meta):
                 t_s = meta["k"] * dt
                 return (moves_where(meta["move_index"], moves, pinned)
                         | after_firmware(meta["move_index"], moves, t_s, dt)
-                        | lead_into(meta["move_index"], moves, t_s, opts.repair.lead_in_s, pinned_z,
+                        | lead_into(meta["move_index"], moves, t_s, opts.repair.lead_in_s, led_in,
                                     opts.repair.lead_in_printed_s, opts.repair.lead_in_z_s))
 
             zpins = (lambda meta: moves_where(meta["move_index"], moves, hop_pinned)) if opts.repair.z_only_hops \
