@@ -844,3 +844,28 @@ def test_a_max_z_accel_warning_counts_the_junctions_and_states_the_measured_cost
     assert 0 < short < total and need > 1000 and f"{s.self_check_drift_ms:+.3f} ms" in notes[0]
     s2 = compensate_file(str(src), str(tmp_path / "o2.gcode"), slow, CompensateOptions(predict=False, self_check=False))
     assert any("max_z_accel" in n and "when on" in n for n in s2.notes)
+
+
+def test_a_travel_into_an_extruding_lift_runs_into_it_on_the_plan(tmp_path, profile):
+    """A random file on the default profile: a travel into a lift that extrudes (0.74 mm of filament
+    per mm).  Klipper's extruder junction rule, ``instantaneous_corner_velocity / |r - r_prev|``,
+    sets the plan's corner at 1.35 mm/s; the free command came into it at 5-7 mm/s, the written
+    chord across the corner carried half the step of the ratio, the rule capped both junctions at
+    2.4-3 mm/s and the lift ran late (the feed solve ran the travel 0.6 ms early to share it).  The
+    travel's last milliseconds now follow the plan into such a corner
+    (``RepairConfig.lead_in_extruder``, ``limited_moves.enters_by_extruder``)."""
+    from ffcomp.compensate.pin_repair import RepairConfig
+
+    src = tmp_path / "r.gcode"
+    src.write_text("G90\nM83\nG28\nG1 X38.183 Y3.635 Z1.459 F5352\nG1 X-15.783 Y-10.359 Z2.072 F8491\n"
+                   "G1 X-14.886 Y-15.757 F12301\nG1 X-4.207 Y-1.775 F12631\nG1 Z3.882 E1.3380 F4746\n"
+                   "G1 E0.8 F2100\nG1 Z6.044 F10026\nG1 X9.957 Y-5.525 Z8.886 E1.8063 F13806\nG1 E0.8 F2100\n")
+
+    def drift_ms(on: bool) -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
+                            CompensateOptions(predict=False, repair=RepairConfig(lead_in_extruder=on),
+                                              self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    assert abs(drift_ms(True)) < 0.2  # +0.05 ms
+    assert abs(drift_ms(False)) > 0.45  # the case: -0.60 ms
