@@ -110,3 +110,19 @@ def test_the_max_z_accel_a_junction_needs_is_what_klippers_rules_ask(seed, z_sha
         assert jv2_at(j, need[j] * (1 + 1e-9)) >= v2[j] * (1 - 1e-9)
         if need[j] > max(along[j] * 1.02, 1.0):
             assert jv2_at(j, need[j] * 0.99) < v2[j]
+
+
+def test_the_header_states_the_max_z_accel_most_junctions_need():
+    """The writer counts each junction's need in 1 % bins; the header's value is the bin's upper edge
+    at 99.9 % of them: one junction asking 100 times more (a micrometre chord at a corner) does not
+    set it, but a thousandth of them more would."""
+    from ffcomp.gcode.writer import Z_NEED_EDGES, WriterStats
+
+    st = WriterStats()
+    needs = np.r_[np.full(1998, 1000.0), np.full(2, 1e5)]
+    st.z_need_hist += np.histogram(needs, Z_NEED_EDGES)[0]
+    assert 1000.0 <= st.z_accel_quantile(0.999) <= 1010.0
+    assert 1e5 <= st.z_accel_quantile(1.0) <= 1.01e5
+    st.z_need_hist += np.histogram(np.full(3, 1e5), Z_NEED_EDGES)[0]
+    assert st.z_accel_quantile(0.999) >= 1e5
+    assert WriterStats().z_accel_quantile(0.999) == 0.0

@@ -58,7 +58,6 @@ def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.nda
     return s[1:-1], v, a
 
 
-
 def _osqp_solve(solver):
     """``solver.solve()`` that keeps Ctrl-C: OSQP installs its own SIGINT handler while it iterates,
     so a Ctrl-C then only ends the solve (status ``"interrupted"``) and never reaches Python's
@@ -69,6 +68,7 @@ def _osqp_solve(solver):
 
         raise Interrupted(signal.SIGINT)
     return res
+
 
 class FbsStream:
     """Windowed LTI filtered-B-spline least squares, fed in chunks.

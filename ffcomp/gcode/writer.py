@@ -134,6 +134,10 @@ class WriterStats:
     #: how many junctions need each max_z_accel (counts in the bins of :data:`Z_NEED_EDGES`; those
     #: with no z need are not counted): :meth:`z_accel_quantile`
     z_need_hist: np.ndarray = field(default_factory=lambda: np.zeros(len(Z_NEED_EDGES) - 1, np.int64))
+    #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
+    peak_z_velocity_mm_s: float = 0.0
+    extruded_mm: float = 0.0
+    notes: list = field(default_factory=list)
 
     def z_accel_quantile(self, share: float) -> float:
         """The max_z_accel (mm/s^2; a bin's upper edge, within 1 %) that ``share`` of the junctions
@@ -143,10 +147,6 @@ class WriterStats:
             return 0.0
         k = int(np.searchsorted(np.cumsum(self.z_need_hist), share * total - 1e-9))
         return float(Z_NEED_EDGES[k + 1])
-    #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
-    peak_z_velocity_mm_s: float = 0.0
-    extruded_mm: float = 0.0
-    notes: list = field(default_factory=list)
 
 
 class GcodeWriter:
