@@ -1,11 +1,10 @@
 """Benchmark: the clock on small random files, on both profiles.
 
 Run: ``python benchmarks/bench_random_drift.py [--n N] [--seed S] [--repair KEY=VALUE] [--dump DIR]``.
-Generates ``N`` small random
-G-code files (deterministic for a seed: optionally G28, 3-8 moves inside a 40 mm radius, z 0.2-8 mm
-rising, some z-only, some extruding or retracting, some extruder-only moves between them),
-compensates each on the default profile and on ``samples/profiles/other_delta.toml`` alternately
-(self-check limits lifted, so every file is measured) and prints, per profile, how many files drift
+Generates ``N`` small random G-code files (deterministic for a seed: optionally G28, 3-8 moves inside
+a 40 mm radius, z 0.2-8 mm rising, some z-only, some extruding or retracting, some extruder-only moves
+between them), compensates each on the default profile and on ``samples/profiles/other_delta.toml``
+alternately (self-check limits lifted, so every file is measured) and prints, per profile, how many files drift
 more than 0.2 ms and 1 ms on the absolute clock, the median and the largest drift, the clock error
 (the largest distance of the re-planned output from the intended command at the same instant, um;
 its median and largest over the files), and the worst file.  What the hypothesis test

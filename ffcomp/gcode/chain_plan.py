@@ -99,6 +99,23 @@ def extruder_limited(d: np.ndarray, de: np.ndarray) -> np.ndarray:
     return (de != 0) & ((de < 0) | ((d[:, 0] == 0) & (d[:, 1] == 0)))
 
 
+def corner_factors(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Klipper's corner terms at the junctions of a chain of ``unit`` (n, 3) directions: ``(ok,
+    r_jd, qt)``, each of length ``n - 1``.  Where ``ok`` (not a straight line), the junction allows
+    ``v^2 <= min(r_jd * jd * a, delta_v2 * qt)`` for either segment's acceleration ``a`` and
+    ``delta_v2 = 2 d a`` (``r_jd = sin(theta/2) / (1 - sin(theta/2))``, ``qt = tan(theta/2) / 4``);
+    elsewhere both are 0."""
+    cos = -np.einsum("ij,ij->i", unit[1:], unit[:-1])
+    sin2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
+    cos2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
+    oms = 1.0 - sin2
+    ok = (oms > 0) & (cos2 > 0)
+    r_jd, qt = np.zeros(len(cos)), np.zeros(len(cos))
+    r_jd[ok] = sin2[ok] / oms[ok]
+    qt[ok] = 0.25 * sin2[ok] / cos2[ok]
+    return ok, r_jd, qt
+
+
 def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.ndarray,
                 delta_v2: np.ndarray) -> np.ndarray:
     """Corner and extruder limits on v^2 at the start of segments ``1..n-1`` (length ``n - 1``).
@@ -106,15 +123,10 @@ def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.nd
     ``unit``: (n, 3) unit directions; ``erat``: (n,) extrusion per mm; ``acc``, ``delta_v2``: each
     segment's acceleration and ``2 d a``.  Cruise-speed limits are applied by :func:`plan_chain`.
     """
-    cos = -np.einsum("ij,ij->i", unit[1:], unit[:-1])
-    sin2 = np.sqrt(np.maximum(0.5 * (1.0 - cos), 0.0))
-    cos2 = np.sqrt(np.maximum(0.5 * (1.0 + cos), 0.0))
-    oms = 1.0 - sin2
-    ok = (oms > 0) & (cos2 > 0)
-    out = np.full(len(cos), np.inf)
+    ok, r_jd_all, qt_all = corner_factors(unit)
+    out = np.full(len(ok), np.inf)
     if ok.any():
-        r_jd = sin2[ok] / oms[ok]
-        qt = 0.25 * sin2[ok] / cos2[ok]
+        r_jd, qt = r_jd_all[ok], qt_all[ok]
         a1, a0 = acc[1:][ok], acc[:-1][ok]
         d1, d0 = delta_v2[1:][ok], delta_v2[:-1][ok]
         out[ok] = np.minimum.reduce([r_jd * lim.jd * a1, r_jd * lim.jd * a0, d1 * qt, d0 * qt])
@@ -212,16 +224,13 @@ def z_accel_needed(d: np.ndarray, dt: np.ndarray, jd_mm: float | None) -> np.nda
     along = np.abs(np.diff(sp)) / (0.5 * (dt[1:] + dt[:-1])) * np.maximum(uz[1:], uz[:-1])
     if jd_mm is None or len(d) < 2:
         return along
-    jc = -np.einsum("ij,ij->i", u[1:], u[:-1])
-    sin2 = np.sqrt(np.maximum(0.5 * (1.0 - jc), 0.0))
-    cos2 = np.sqrt(np.maximum(0.5 * (1.0 + jc), 0.0))
+    corner_ok, r_jd_all, qt_all = corner_factors(u)
     v2 = (0.5 * (sp[1:] + sp[:-1])) ** 2
-    # (a reversal, sin2 = 0, stops the firmware whatever the limits: no max_z_accel helps there)
-    turn = (sin2 < 1.0 - 1e-12) & (sin2 > 1e-9) & (cos2 > 1e-12) & ok[1:] & ok[:-1]
-    corner = np.zeros(len(jc))
+    # (a reversal, r_jd = 0, stops the firmware whatever the limits: no max_z_accel helps there)
+    turn = corner_ok & (r_jd_all > 1e-9) & ok[1:] & ok[:-1]
+    corner = np.zeros(len(turn))
     if turn.any():
-        r_jd = sin2[turn] / (1.0 - sin2[turn])
-        qt = 0.25 * sin2[turn] / cos2[turn]
+        r_jd, qt = r_jd_all[turn], qt_all[turn]
         need = []
         for side in (1, 0):  # the segment after, then before the junction
             l_s = ln[side:len(ln) - 1 + side][turn]

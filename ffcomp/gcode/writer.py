@@ -129,8 +129,6 @@ class WriterStats:
     #: junctions between moving segments, and those that need more than the profile's max_z_accel
     junctions: int = 0
     z_accel_short: int = 0
-    #: corners of the plan written on the command's corner with longer chords (plan_clock.free_corner)
-    free_corners: int = 0
     #: how many junctions need each max_z_accel (counts in the bins of :data:`Z_NEED_EDGES`; those
     #: with no z need are not counted): :meth:`z_accel_quantile`
     z_need_hist: np.ndarray = field(default_factory=lambda: np.zeros(len(Z_NEED_EDGES) - 1, np.int64))
@@ -441,7 +439,6 @@ class GcodeWriter:
                     free = self._free_corner(k0, a, b, runs[r + 1], X, mv, k_plan, on_plan)
                 if free is not None:
                     end, n_tail, free_lead = free
-                    self.stats.free_corners += 1
                     run_ends.append(end)
                     tails.append((n_tail, None, None) if n_tail else None)
                 else:

@@ -85,7 +85,7 @@ def limit_warnings(profile, needs: FirmwareNeeds, stats=None, drift_ms: float | 
                              ("max_velocity", lim.max_velocity_mm_s, needs.max_velocity)):
         if need > have * (Z_NEED_SLACK if name == "max_z_accel" else 1 + 1e-9):
             what = f"the {need:g} this file's compensated segments need ({need / have:.1f}x)"
-            if name == "max_z_accel" and stats is not None and getattr(stats, "junctions", 0):
+            if name == "max_z_accel" and stats is not None and stats.junctions:
                 what = (f"what this file's compensated segments need at {stats.z_accel_short:,} of "
                         f"{stats.junctions:,} junctions ({need:g} at {Z_NEED_SHARE:.1%} of those that move in z, "
                         f"{need / have:.1f}x; up to {_up(stats.peak_z_accel_mm_s2, 100.0):g})")
