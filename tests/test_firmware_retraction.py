@@ -195,7 +195,10 @@ def test_profile_section_round_trips_validates_and_imports(tmp_path, profile):
 def test_firmware_config_prints_the_section(profile):
     from ffcomp.pipeline.header import FirmwareNeeds, klipper_snippet
 
-    needs = FirmwareNeeds(100000, 300, 3000, 300, 3000, 5, 0)
+    lim = profile.limits
+    needs = FirmwareNeeds(lim.max_accel_mm_s2, lim.max_z_accel_mm_s2, lim.max_velocity_mm_s,
+                          lim.max_z_velocity_mm_s, 100000, 5, 0)
+    assert "note:" not in klipper_snippet(needs, profile)  # the file's values are the profile's
     assert "[firmware_retraction]" not in klipper_snippet(needs, profile)
     snip = klipper_snippet(needs, profile.with_(firmware_retraction=FR))
     assert "[firmware_retraction]\nretract_length: 0.8\nretract_speed: 35\nunretract_extra_length: 0.05\n" \

@@ -1,4 +1,4 @@
-"""``ffcomp firmware-config OUT.gcode``: the Klipper printer.cfg values a compensated file needs."""
+"""``ffcomp firmware-config OUT.gcode``: the Klipper printer.cfg values a compensated file is timed for."""
 
 from __future__ import annotations
 
@@ -15,12 +15,16 @@ def firmware_config(
     gcode: Annotated[Path, typer.Argument(help="A G-code file compensated by ffcomp.")],
     profile: ProfileOpt = None,
 ) -> None:
-    """Print the Klipper [printer] snippet (max_accel, max_z_accel, ...) the compensated file needs."""
+    """Print the Klipper [printer] snippet (max_accel, max_z_accel, ...) the compensated file is timed for."""
     from ..pipeline.header import klipper_snippet, read_firmware_needs
 
     if not gcode.is_file():
         raise typer.BadParameter(f"{gcode}: no such file")
-    needs = read_firmware_needs(str(gcode))
+    try:
+        needs = read_firmware_needs(str(gcode))
+    except ValueError as e:
+        typer.echo(str(e), err=True)
+        raise typer.Exit(2) from None
     if needs is None:
         typer.echo(f"{gcode}: no ffcomp firmware line in its header (not compensated by this ffcomp, or "
                    "compensated for Marlin)", err=True)

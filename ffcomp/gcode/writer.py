@@ -134,6 +134,9 @@ class WriterStats:
     z_need_hist: np.ndarray = field(default_factory=lambda: np.zeros(len(Z_NEED_EDGES) - 1, np.int64))
     #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
     peak_z_velocity_mm_s: float = 0.0
+    #: moving segments that reach Klipper's slow zone at the rim (``slow_xy2``), where printer.cfg's
+    #: max_velocity and max_accel cap them
+    rim_segments: int = 0
     extruded_mm: float = 0.0
     notes: list = field(default_factory=list)
 
@@ -640,6 +643,10 @@ class GcodeWriter:
             dm, tm = d[moving], dt[moving]
             vv = dm / tm[:, None]
             self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[moving].max()))
+            if self.chain is not None:
+                xy2 = np.maximum(np.einsum("ij,ij->i", Pr[i][moving, :2], Pr[i][moving, :2]),
+                                 np.einsum("ij,ij->i", Pr[j][moving, :2], Pr[j][moving, :2]))
+                self.stats.rim_segments += int(np.count_nonzero(xy2 > self.chain.slow_xy2))
             if self.prev_v is not None:
                 vv = np.vstack([self.prev_v[None], vv])
                 dm, tm = np.vstack([self.prev_seg[0][None], dm]), np.r_[self.prev_seg[1], tm]

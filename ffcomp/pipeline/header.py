@@ -19,11 +19,22 @@ NEEDS_TAG = "; ffcomp firmware:"
 class FirmwareNeeds:
     """What a compensated file needs from Klipper (mm, s).
 
-    ``max_accel``, ``max_z_accel``, ``max_velocity``, ``max_z_velocity``: ``[printer]`` (printer.cfg)
-    values at or above which every segment runs in its intended time (``max_z_accel``: at
-    :data:`Z_NEED_SHARE` of the junctions that move in z; rounded up to 100 mm/s^2 and 1 mm/s);
-    ``accel``, ``square_corner_velocity``, ``minimum_cruise_ratio``: the run-time values
-    the file sets itself with ``SET_VELOCITY_LIMIT``.
+    ``max_accel``, ``max_z_accel``, ``max_velocity``, ``max_z_velocity``: the ``[printer]``
+    (printer.cfg) values the file is **timed for**, the profile's.  The writer solved its feeds
+    against them, and Klipper's delta kinematics reads them from printer.cfg only
+    (``SET_VELOCITY_LIMIT`` cannot change them): the z ramps run at ``max_z_accel * d/|dz|`` and the
+    rim's slow zone at a fraction of ``max_accel`` and ``max_velocity``.  So ``max_z_accel`` and
+    ``max_accel`` must be these values: a higher max_z_accel runs the file's z ramps early and its
+    clock drifts (``cube_prusa.gcode`` compensated for the default profile and re-planned at the
+    43,600 mm/s^2 its segments would need to pass every corner unslowed: 165 ms early by its end;
+    at 1.1x the profile's value on other_delta, 85 ms).  ``max_velocity`` and ``max_z_velocity``
+    may be higher where the written segments stay below them (``peak_velocity``,
+    ``peak_z_velocity``: the largest speeds of the written segments, overall and along z).
+    ``accel``, ``square_corner_velocity``, ``minimum_cruise_ratio``: the run-time values the file
+    sets itself with ``SET_VELOCITY_LIMIT``.
+    ``z_accel_unslowed``: the max_z_accel at which Klipper's rules let :data:`Z_NEED_SHARE` of the
+    junctions that move in z through at the command's speed (rounded up to 100 mm/s^2; information:
+    it takes a profile with that value, and compensating again, to use it).
     """
 
     max_accel: float
@@ -33,16 +44,29 @@ class FirmwareNeeds:
     accel: float
     square_corner_velocity: float
     minimum_cruise_ratio: float = 0.0
+    peak_velocity: float = 0.0
+    peak_z_velocity: float = 0.0
+    z_accel_unslowed: float = 0.0
+    rim_segments: float = 0.0
+
+    def may_be_higher(self, name: str) -> bool:
+        """Whether printer.cfg's ``name`` (``max_velocity`` or ``max_z_velocity``) may exceed the
+        stated value without moving the file's clock: no written segment reaches it (nor, for
+        max_velocity, the rim's slow zone, whose cap is a fraction of it)."""
+        peak = {"max_velocity": self.peak_velocity, "max_z_velocity": self.peak_z_velocity}.get(name)
+        if name == "max_velocity" and self.rim_segments:
+            return False
+        return peak is not None and peak < getattr(self, name) * (1 - 1e-9)
 
 
 def _up(x: float, step: float) -> float:
     return float(math.ceil(max(x, 0.0) / step - 1e-9) * step)
 
 
-#: the share of a file's junctions (those with a z need) whose max_z_accel the header states as the
-#: file's need: one chord of a micrometre or two at a corner asks any amount (253,200 mm/s^2 on a
-#: printed circle's layer change, where the self-check measured +0.06 ms for the nine such
-#: junctions), and the header's snippet goes into printer.cfg
+#: the share of a file's junctions (those with a z need) whose max_z_accel the header states as what
+#: the file's segments would need to pass unslowed: one chord of a micrometre or two at a corner asks
+#: any amount (253,200 mm/s^2 on a printed circle's layer change, where the self-check measured
+#: +0.06 ms for the nine such junctions)
 Z_NEED_SHARE = 0.999
 #: a max_z_accel need within this factor of the profile's is no warning (the need's bins are 1 %
 #: wide, and the plan's own z ramps run at the profile's value)
@@ -52,37 +76,38 @@ QUIET_DRIFT_MS = 0.2
 
 
 def firmware_needs(profile, opts, accel: float, stats) -> FirmwareNeeds:
-    """The firmware values a written body needs, from the writer's statistics (peak accelerations
-    and speeds between its segments, overall and projected on z)."""
+    """The firmware values a written body is timed for (the profile's ``[printer]`` limits) and what
+    its segments reach, from the writer's statistics (peak speeds between its segments, overall and
+    along z; the max_z_accel its junctions ask)."""
     lim = profile.limits
     return FirmwareNeeds(
-        max_accel=max(_up(stats.peak_accel_mm_s2, 100.0), lim.max_accel_mm_s2),
-        max_z_accel=_up(stats.z_accel_quantile(Z_NEED_SHARE), 100.0),
-        max_velocity=max(_up(stats.peak_speed_mm_s, 1.0), lim.max_velocity_mm_s),
-        max_z_velocity=_up(stats.peak_z_velocity_mm_s, 1.0),
-        accel=float(accel), square_corner_velocity=float(opts.corner_velocity_mm_s), minimum_cruise_ratio=0.0)
+        max_accel=float(lim.max_accel_mm_s2), max_z_accel=float(lim.max_z_accel_mm_s2),
+        max_velocity=float(lim.max_velocity_mm_s), max_z_velocity=float(lim.max_z_velocity_mm_s),
+        accel=float(accel), square_corner_velocity=float(opts.corner_velocity_mm_s), minimum_cruise_ratio=0.0,
+        peak_velocity=_up(stats.peak_speed_mm_s, 1.0), peak_z_velocity=_up(stats.peak_z_velocity_mm_s, 1.0),
+        z_accel_unslowed=_up(stats.z_accel_quantile(Z_NEED_SHARE), 100.0), rim_segments=float(stats.rim_segments))
 
 
 def limit_warnings(profile, needs: FirmwareNeeds, stats=None, drift_ms: float | None = None,
                    clock_um: float | None = None) -> list[str]:
-    """Warnings for profile limits below what the file needs, each saying which, by how much, where
-    (``stats``, the writer's :class:`~ffcomp.gcode.writer.WriterStats`: how many junctions need more
-    max_z_accel) and what it cost: the self-check's largest drift on the absolute clock (ms) and
-    distance from the intended command at the same instant (um), when it ran.  None where the
-    self-check measured a drift within :data:`QUIET_DRIFT_MS`: the firmware slows at those
-    junctions, and the writer's feeds keep the clock anyway (the header states the values)."""
+    """Warnings for profile limits below what the file's segments would need to run unslowed, each
+    saying which, by how much, where (``stats``, the writer's :class:`~ffcomp.gcode.writer.WriterStats`:
+    how many junctions need more max_z_accel) and what it cost: the self-check's largest drift on the
+    absolute clock (ms) and distance from the intended command at the same instant (um), when it ran.
+    None where the self-check measured a drift within :data:`QUIET_DRIFT_MS`: the firmware slows at
+    those junctions, and the writer's feeds keep the clock anyway."""
     lim = profile.limits
     if drift_ms is not None and abs(drift_ms) <= QUIET_DRIFT_MS:
-        return []  # measured: the writer keeps the clock despite the limits (the header still states them)
+        return []  # measured: the writer keeps the clock despite the limits
     if drift_ms is not None and clock_um is not None:
         cost = (f"the self-check measured what it costs: largest drift on the absolute clock {drift_ms:+.3f} ms, "
                 f"largest distance from the intended command {clock_um:.1f} um")
     else:
         cost = "those segments run late (the self-check, when on, says by how much)"
     out = []
-    for name, have, need in (("max_z_accel", lim.max_z_accel_mm_s2, needs.max_z_accel),
-                             ("max_z_velocity", lim.max_z_velocity_mm_s, needs.max_z_velocity),
-                             ("max_velocity", lim.max_velocity_mm_s, needs.max_velocity)):
+    for name, have, need in (("max_z_accel", lim.max_z_accel_mm_s2, needs.z_accel_unslowed),
+                             ("max_z_velocity", lim.max_z_velocity_mm_s, needs.peak_z_velocity),
+                             ("max_velocity", lim.max_velocity_mm_s, needs.peak_velocity)):
         if need > have * (Z_NEED_SLACK if name == "max_z_accel" else 1 + 1e-9):
             what = f"the {need:g} this file's compensated segments need ({need / have:.1f}x)"
             if name == "max_z_accel" and stats is not None and stats.junctions:
@@ -90,32 +115,51 @@ def limit_warnings(profile, needs: FirmwareNeeds, stats=None, drift_ms: float | 
                         f"{stats.junctions:,} junctions ({need:g} at {Z_NEED_SHARE:.1%} of those that move in z, "
                         f"{need / have:.1f}x; up to {_up(stats.peak_z_accel_mm_s2, 100.0):g})")
             out.append(f"firmware: the profile's {name} = {have:g} is below {what}: the firmware slows there; "
-                       f"{cost}; raising {name} in printer.cfg and the profile removes the cost")
+                       f"{cost}; raising {name} in printer.cfg and in the profile, then compensating again, "
+                       "removes the cost (the file is timed for the profile's value: raising it in printer.cfg "
+                       "alone moves the file's clock)")
     return out
 
 
 def read_firmware_needs(path: str, max_lines: int = 40) -> FirmwareNeeds | None:
-    """The :class:`FirmwareNeeds` stated in a compensated file's header (None if it has none)."""
+    """The :class:`FirmwareNeeds` stated in a compensated file's header (None if it has none).
+
+    Raises
+    ------
+    ValueError
+        For a header written before the values were the ones the file is timed for (no
+        ``z_accel_unslowed`` word): its max_z_accel was what the segments would need to pass every
+        corner unslowed, which moves the file's clock if printer.cfg is set to it.
+    """
     with open(path, encoding="utf-8", errors="replace") as f:
         for i, line in enumerate(f):
             if line.startswith(NEEDS_TAG):
                 kv = dict(w.split("=", 1) for w in line[len(NEEDS_TAG):].split() if "=" in w)
-                return FirmwareNeeds(**{k: float(kv[k]) for k in asdict(FirmwareNeeds(0, 0, 0, 0, 0, 0))})
+                if "z_accel_unslowed" not in kv:
+                    raise ValueError(
+                        f"{path}: its header comes from an older ffcomp, which stated the max_z_accel its "
+                        "segments would need to pass every corner unslowed, not the value the file is timed "
+                        "for (setting printer.cfg to it moves the file's clock): compensate the source again")
+                return FirmwareNeeds(**{k: float(kv[k]) for k in asdict(FirmwareNeeds(0, 0, 0, 0, 0, 0)) if k in kv})
             if i >= max_lines:
                 break
     return None
 
 
 def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
-    """The ``[printer]`` section a Klipper printer.cfg needs to run the file on time."""
-    lim = profile.limits if profile is not None else None
-
-    def val(need, have):
-        return max(need, have) if have is not None else need
+    """The ``[printer]`` values a Klipper printer.cfg must have to run the file on time (those it is
+    timed for), with what the file sets itself as comments; ``profile`` (optional) adds its
+    ``[firmware_retraction]`` and says where its limits differ from the file's."""
+    def bound(name: str) -> str:
+        v = getattr(needs, name)
+        if needs.may_be_higher(name):
+            peak = needs.peak_velocity if name == "max_velocity" else needs.peak_z_velocity
+            return f"{name}: {v:g}  # or higher (its segments reach {peak:g} mm/s)"
+        return f"{name}: {v:g}  # exactly: the file is timed for it"
 
     lines = [
-        "# Klipper printer.cfg values this compensated file needs (ffcomp " + __version__ + ")",
-        "# (raise any lower value; higher values change nothing). The file itself sets the run-time limits:",
+        "# Klipper printer.cfg values this compensated file is timed for (ffcomp " + __version__ + ")",
+        "# The file itself sets the run-time limits (and its footer restores the profile's):",
         f"#   SET_VELOCITY_LIMIT ACCEL={needs.accel:.0f} SQUARE_CORNER_VELOCITY={needs.square_corner_velocity:g} "
         f"MINIMUM_CRUISE_RATIO={needs.minimum_cruise_ratio:g}",
         f"# and switches input shaping off while it runs ({SHAPER_OFF}): the compensation is the shaping;",
@@ -123,14 +167,20 @@ def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
                 if profile is not None and profile.input_shaper is not None else
                 "the profile has no [input_shaper] section, so the file cannot switch it back on "
                 "(ffcomp profile import --klipper printer.cfg reads it)."),
-        "[printer]",
-        f"max_velocity: {val(needs.max_velocity, lim.max_velocity_mm_s if lim else None):g}",
-        f"max_accel: {val(needs.max_accel, lim.max_accel_mm_s2 if lim else None):g}",
-        f"max_z_velocity: {val(needs.max_z_velocity, lim.max_z_velocity_mm_s if lim else None):g}",
-        f"max_z_accel: {val(needs.max_z_accel, lim.max_z_accel_mm_s2 if lim else None):g}",
-        f"square_corner_velocity: {needs.square_corner_velocity:g}",
-        f"minimum_cruise_ratio: {needs.minimum_cruise_ratio:g}",
+        "# Klipper's delta kinematics reads these four from printer.cfg only: it ramps z at max_z_accel",
+        "# and slows the rim at a fraction of max_accel, and the file's feeds were solved against them.",
     ]
+    if needs.z_accel_unslowed > needs.max_z_accel * Z_NEED_SLACK:
+        lines.append(f"# (Its segments would pass every corner unslowed at max_z_accel {needs.z_accel_unslowed:g}: "
+                     "that takes a profile with that value and compensating again.)")
+    lim = profile.limits if profile is not None else None
+    if lim is not None:
+        for name, have in (("max_velocity", lim.max_velocity_mm_s), ("max_accel", lim.max_accel_mm_s2),
+                           ("max_z_velocity", lim.max_z_velocity_mm_s), ("max_z_accel", lim.max_z_accel_mm_s2)):
+            if abs(have - getattr(needs, name)) > 1e-9 * max(have, 1.0):
+                lines.append(f"# note: this profile's {name} = {have:g}, but the file was timed for "
+                             f"{getattr(needs, name):g} (compensated with another profile?)")
+    lines += ["[printer]", *(bound(n) for n in ("max_velocity", "max_accel", "max_z_velocity", "max_z_accel"))]
     fr = profile.firmware_retraction if profile is not None else None
     if fr is not None:  # G10/G11 are timed with these: the printer must retract the same way
         lines += ["[firmware_retraction]", f"retract_length: {fr.retract_length_mm:g}",
@@ -201,15 +251,20 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
     if lim.planner == "klipper":
         if needs is not None:
             head += [
-                f"; printer.cfg [printer] values this file needs to run on time: max_accel >= {needs.max_accel:g}, "
-                f"max_z_accel >= {needs.max_z_accel:g}, max_velocity >= {needs.max_velocity:g}, "
-                f"max_z_velocity >= {needs.max_z_velocity:g} (print them: ffcomp firmware-config FILE)",
+                f"; timed for printer.cfg [printer] max_accel = {needs.max_accel:g}, "
+                f"max_z_accel = {needs.max_z_accel:g}, "
+                f"max_velocity = {needs.max_velocity:g}, max_z_velocity = {needs.max_z_velocity:g} (the profile's); "
+                "keep max_accel and max_z_accel exactly: Klipper runs the z ramps at max_z_accel and the feeds "
+                "were solved against it (another value moves this file's clock)",
+                f"; its segments reach {needs.peak_velocity:g} mm/s ({needs.peak_z_velocity:g} mm/s along z) "
+                "(print the snippet: ffcomp firmware-config FILE)",
                 NEEDS_TAG + " " + " ".join(f"{k}={v:g}" for k, v in asdict(needs).items()),
             ]
-        head += [
-            f"; timed for [printer] max_z_accel = {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
-            f"max_z_velocity = {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
-        ]
+        else:
+            head += [
+                f"; timed for [printer] max_z_accel = {profile.limits.max_z_accel_mm_s2:g} mm/s^2 and "
+                f"max_z_velocity = {profile.limits.max_z_velocity_mm_s:g} mm/s as in the profile",
+            ]
         fr = profile.firmware_retraction
         if firmware_retractions and fr is not None:
             head += [f"; G10/G11 timed for [firmware_retraction] retract_length = {fr.retract_length_mm:g}, "
