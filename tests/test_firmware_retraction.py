@@ -197,7 +197,10 @@ def test_firmware_config_prints_the_section(profile):
 
     lim = profile.limits
     needs = FirmwareNeeds(lim.max_accel_mm_s2, lim.max_z_accel_mm_s2, lim.max_velocity_mm_s,
-                          lim.max_z_velocity_mm_s, 100000, 5, 0)
+                          lim.max_z_velocity_mm_s, 100000, 5, 0,
+                          instantaneous_corner_velocity=lim.instantaneous_corner_velocity_mm_s,
+                          max_extrude_only_velocity=lim.max_extrude_only_velocity_mm_s,
+                          max_extrude_only_accel=lim.max_extrude_only_accel_mm_s2)
     assert "note:" not in klipper_snippet(needs, profile)  # the file's values are the profile's
     assert "[firmware_retraction]" not in klipper_snippet(needs, profile)
     snip = klipper_snippet(needs, profile.with_(firmware_retraction=FR))

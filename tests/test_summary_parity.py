@@ -49,8 +49,10 @@ def test_footer_restores_every_limit_the_header_raised(tmp_path, planner, which)
         assert set(words) == set(foot[cmd]), cmd
     lim = prof.limits
     if planner == "marlin":
-        assert foot["M204"] == {"P": lim.max_accel_mm_s2, "T": lim.max_accel_mm_s2}
-        assert foot["M201"] == {"X": lim.max_accel_mm_s2, "Y": lim.max_accel_mm_s2, "Z": lim.max_z_accel_mm_s2}
+        e_acc = lim.max_extrude_only_accel_mm_s2
+        assert foot["M204"] == {"P": lim.max_accel_mm_s2, "T": lim.max_accel_mm_s2, "R": e_acc}
+        assert foot["M201"] == {"X": lim.max_accel_mm_s2, "Y": lim.max_accel_mm_s2, "Z": lim.max_z_accel_mm_s2,
+                                "E": e_acc}
     else:
         assert foot["SET_VELOCITY_LIMIT"]["ACCEL"] == lim.max_accel_mm_s2
         assert foot["SET_VELOCITY_LIMIT"]["MINIMUM_CRUISE_RATIO"] == lim.minimum_cruise_ratio

@@ -258,6 +258,8 @@ def test_header_states_the_firmware_values_and_the_snippet_reads_them(square_run
     assert "[printer]" in text and f"max_z_accel: {needs.max_z_accel:g}  # exactly" in text
     assert f"max_accel: {needs.max_accel:g}  # exactly" in text
     assert "max_velocity: 300  # or higher" in text  # the square stays off the rim, below 300 mm/s
+    assert f"[extruder]\ninstantaneous_corner_velocity: {lim.instantaneous_corner_velocity_mm_s:g}  # exactly" in text
+    assert f"max_extrude_only_accel: {lim.max_extrude_only_accel_mm_s2:g}  # exactly" in text
     # the profile's limits are named when the file's segments would need more to run unslowed
     # and the self-check measured it to cost the clock more than 0.2 ms; else not
     from ffcomp.pipeline.header import QUIET_DRIFT_MS, Z_NEED_SLACK
@@ -296,6 +298,10 @@ def test_the_file_is_timed_for_the_stated_max_z_accel_exactly(tmp_path):
     higher = replace(prof, limits=replace(prof.limits, max_z_accel_mm_s2=1.1 * needs.max_z_accel,
                                           max_accel_mm_s2=1.1 * needs.max_accel))
     assert end_s(prof) - end_s(higher) > 1e-3  # > 1 ms early over four layer changes
+    # and so is each of its retractions for the stated max_extrude_only_accel
+    assert needs.max_extrude_only_accel == prof.limits.max_extrude_only_accel_mm_s2
+    faster = replace(prof, limits=replace(prof.limits, max_extrude_only_accel_mm_s2=1.5 * needs.max_extrude_only_accel))
+    assert end_s(prof) - end_s(faster) > 1e-3
     # an older header (no z_accel_unslowed word) is refused with a reason
     old = tmp_path / "old.gcode"
     text = out.read_text()

@@ -32,6 +32,10 @@ class FirmwareNeeds:
     ``peak_z_velocity``: the largest speeds of the written segments, overall and along z).
     ``accel``, ``square_corner_velocity``, ``minimum_cruise_ratio``: the run-time values the file
     sets itself with ``SET_VELOCITY_LIMIT``.
+    ``instantaneous_corner_velocity``, ``max_extrude_only_velocity``, ``max_extrude_only_accel``: the
+    ``[extruder]`` values the file is timed for, the profile's, all three exactly (the retractions
+    and the junctions where the extrusion ratio steps run at them: cube_prusa on other_delta
+    re-planned at max_extrude_only_accel 5000 instead of 3000 runs 1.34 s early by its end).
     ``z_accel_unslowed``: the max_z_accel at which Klipper's rules let :data:`Z_NEED_SHARE` of the
     junctions that move in z through at the command's speed (rounded up to 100 mm/s^2; information:
     it takes a profile with that value, and compensating again, to use it).
@@ -48,6 +52,9 @@ class FirmwareNeeds:
     peak_z_velocity: float = 0.0
     z_accel_unslowed: float = 0.0
     rim_segments: float = 0.0
+    instantaneous_corner_velocity: float = 1.0
+    max_extrude_only_velocity: float = 0.0
+    max_extrude_only_accel: float = 0.0
 
     def may_be_higher(self, name: str) -> bool:
         """Whether printer.cfg's ``name`` (``max_velocity`` or ``max_z_velocity``) may exceed the
@@ -85,7 +92,10 @@ def firmware_needs(profile, opts, accel: float, stats) -> FirmwareNeeds:
         max_velocity=float(lim.max_velocity_mm_s), max_z_velocity=float(lim.max_z_velocity_mm_s),
         accel=float(accel), square_corner_velocity=float(opts.corner_velocity_mm_s), minimum_cruise_ratio=0.0,
         peak_velocity=_up(stats.peak_speed_mm_s, 1.0), peak_z_velocity=_up(stats.peak_z_velocity_mm_s, 1.0),
-        z_accel_unslowed=_up(stats.z_accel_quantile(Z_NEED_SHARE), 100.0), rim_segments=float(stats.rim_segments))
+        z_accel_unslowed=_up(stats.z_accel_quantile(Z_NEED_SHARE), 100.0), rim_segments=float(stats.rim_segments),
+        instantaneous_corner_velocity=float(lim.instantaneous_corner_velocity_mm_s),
+        max_extrude_only_velocity=float(lim.max_extrude_only_velocity_mm_s),
+        max_extrude_only_accel=float(lim.max_extrude_only_accel_mm_s2))
 
 
 def limit_warnings(profile, needs: FirmwareNeeds, stats=None, drift_ms: float | None = None,
@@ -180,7 +190,18 @@ def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
             if abs(have - getattr(needs, name)) > 1e-9 * max(have, 1.0):
                 lines.append(f"# note: this profile's {name} = {have:g}, but the file was timed for "
                              f"{getattr(needs, name):g} (compensated with another profile?)")
+    if lim is not None:
+        for name, have in (("instantaneous_corner_velocity", lim.instantaneous_corner_velocity_mm_s),
+                           ("max_extrude_only_velocity", lim.max_extrude_only_velocity_mm_s),
+                           ("max_extrude_only_accel", lim.max_extrude_only_accel_mm_s2)):
+            if abs(have - getattr(needs, name)) > 1e-9 * max(have, 1.0):
+                lines.append(f"# note: this profile's {name} = {have:g}, but the file was timed for "
+                             f"{getattr(needs, name):g} (compensated with another profile?)")
     lines += ["[printer]", *(bound(n) for n in ("max_velocity", "max_accel", "max_z_velocity", "max_z_accel"))]
+    lines += ["# these three go into your [extruder] section: the retractions and extrusion steps are timed with them",
+              "[extruder]",
+              *(f"{n}: {getattr(needs, n):g}  # exactly: the file is timed for it"
+                for n in ("instantaneous_corner_velocity", "max_extrude_only_velocity", "max_extrude_only_accel"))]
     fr = profile.firmware_retraction if profile is not None else None
     if fr is not None:  # G10/G11 are timed with these: the printer must retract the same way
         lines += ["[firmware_retraction]", f"retract_length: {fr.retract_length_mm:g}",
@@ -256,6 +277,9 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
                 f"max_velocity = {needs.max_velocity:g}, max_z_velocity = {needs.max_z_velocity:g} (the profile's); "
                 "keep max_accel and max_z_accel exactly: Klipper runs the z ramps at max_z_accel and the feeds "
                 "were solved against it (another value moves this file's clock)",
+                f"; and [extruder] instantaneous_corner_velocity = {needs.instantaneous_corner_velocity:g}, "
+                f"max_extrude_only_velocity = {needs.max_extrude_only_velocity:g}, max_extrude_only_accel = "
+                f"{needs.max_extrude_only_accel:g} exactly (the retractions are timed with them)",
                 f"; its segments reach {needs.peak_velocity:g} mm/s ({needs.peak_z_velocity:g} mm/s along z) "
                 "(print the snippet: ffcomp firmware-config FILE)",
                 NEEDS_TAG + " " + " ".join(f"{k}={v:g}" for k, v in asdict(needs).items()),
@@ -281,10 +305,19 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
                 f"SQUARE_CORNER_VELOCITY={lim.square_corner_velocity_mm_s:g} ; ffcomp: restore the profile's limits",
                 *shaper_foot]
     else:
-        head += [f"M204 P{accel:.0f} T{accel:.0f}", f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f}"]
+        # the limits the body is timed with: the run-time accelerations raised (the segments carry the
+        # timing), the rest at the profile's values, set here so that the printer's EEPROM cannot differ
+        e_acc, v, vz, ve = (lim.max_extrude_only_accel_mm_s2, lim.max_velocity_mm_s, lim.max_z_velocity_mm_s,
+                            lim.max_extrude_only_velocity_mm_s)
+        head += [f"M204 P{accel:.0f} T{accel:.0f} R{e_acc:g}",
+                 f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f} E{e_acc:g}",
+                 f"M203 X{v:g} Y{v:g} Z{vz:g} E{ve:g} ; ffcomp: the profile's, which the file is timed for",
+                 f"M205 J{lim.junction_deviation_mm:g} S0 T0 ; ffcomp: the profile's junction deviation, no minimum "
+                 "feed rates (a junction-deviation Marlin build)"]
         # restore every limit the header raised: M204 and M201 (Z: the profile's max_z_accel)
-        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} ; ffcomp: restore the profile's limits",
-                f"M201 X{lim.max_accel_mm_s2:g} Y{lim.max_accel_mm_s2:g} Z{lim.max_z_accel_mm_s2:g} "
+        foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} R{e_acc:g} "
+                "; ffcomp: restore the profile's limits",
+                f"M201 X{lim.max_accel_mm_s2:g} Y{lim.max_accel_mm_s2:g} Z{lim.max_z_accel_mm_s2:g} E{e_acc:g} "
                 "; ffcomp: restore the profile's limits"]
     head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
     return head, foot
