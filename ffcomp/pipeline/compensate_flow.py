@@ -59,6 +59,7 @@ from .options import (  # noqa: F401  (re-exported: the run's options and summar
 from .pieces import Piece, _PieceState
 from .pin_stream import PinStats, pin_repaired
 from .predictor import Predictor
+from .retime import retime_file
 from .self_check import self_check
 from .stream_flow import compensated_stream, inv_pre_samples, inverse_config
 
@@ -178,9 +179,17 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
             fo.flush()
             os.fsync(fo.fileno())
         summ.lines_out = n_out + len(head) + len(foot)
+        retimed = bd.firmware != "klipper" and opts.retime_passes > 0
+        if retimed:  # (the whole file: with --jobs, the pieces' own self-checks no longer hold)
+            _stage(progress, "re-timing", total_lines)
+            t_rt = time.perf_counter()
+            rt = retime_file(final_tmp, qfile, profile, geom, summ.start_mm, segfile, len(head),
+                             passes=opts.retime_passes)
+            summ.retime_passes, summ.retime_before_ms, summ.retime_after_ms = rt.passes, rt.before_ms, rt.after_ms
+            summ.retime_time_s = time.perf_counter() - t_rt
         if opts.self_check:
             _stage(progress, "self-check", total_lines)
-            if bd.self_checks is not None and not opts.self_check_whole:  # --jobs: each piece by its worker
+            if bd.self_checks is not None and not opts.self_check_whole and not retimed:  # --jobs: per piece
                 from .parallel_flow import judge_pieces
 
                 judge_pieces(bd, summ, opts, profile)
@@ -282,10 +291,14 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
         accel = header_accel(profile, opts)
         chain = ChainLimits(profile, accel, opts.corner_velocity_mm_s) if plan.firmware == "klipper" else None
         writer = GcodeWriter(lines, body, dt, opts.tol_um * 1e-3, moves, accel_mm_s2=accel,
-                             max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2,
+                             # (Marlin: the header's M201 Z is the header's acceleration)
+                             max_z_accel_mm_s2=profile.limits.max_z_accel_mm_s2 if chain is not None else accel,
                              max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
                              chain_limits=chain)
         writer.start_travel_mm_s = start.travel_mm_s if cuts is None or cuts.first else None
+        if chain is None:  # Marlin: the header's M201 E; the source's extruder limits stay in force
+            writer.e_accel = profile.limits.max_extrude_only_accel_mm_s2
+            writer.extruder_limits = True
         pred = Predictor(model, dt) if opts.predict else None
         bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
         pin_stats = PinStats()

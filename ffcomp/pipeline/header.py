@@ -318,7 +318,9 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
         foot = [f"M204 P{lim.max_accel_mm_s2:g} T{lim.max_accel_mm_s2:g} R{e_acc:g} "
                 "; ffcomp: restore the profile's limits",
                 f"M201 X{lim.max_accel_mm_s2:g} Y{lim.max_accel_mm_s2:g} Z{lim.max_z_accel_mm_s2:g} E{e_acc:g} "
-                "; ffcomp: restore the profile's limits"]
+                "; ffcomp: restore the profile's limits",
+                f"M203 X{v:g} Y{v:g} Z{vz:g} E{ve:g} ; ffcomp: restore the profile's limits (the source's E may "
+                "have changed it)"]
     head += ["G90 ; ffcomp: absolute positions (machine coordinates)", "M83 ; ffcomp: relative extrusion"]
     return head, foot
 

@@ -92,6 +92,10 @@ class CompensateOptions:
     #: the next move during the unretraction; in this added rest it can (the print takes that much
     #: longer per margin: counted in the summary).  See :mod:`ffcomp.gcode.margins`.
     hold_margin_s: float = 0.0
+    #: passes of the feed re-timing on the firmware's own plan for planners the writer has no exact
+    #: chain model of (Marlin; :mod:`ffcomp.pipeline.retime`); 0: none.  Klipper's writer solves its
+    #: feeds against an exact copy of Klipper's lookahead and needs none.
+    retime_passes: int = 6
 
 
 @dataclass
@@ -175,6 +179,12 @@ class CompensationSummary:
     #: short moves from rest to rest the firmware could not run in their time, written as holds
     #: (the nozzle stays within ``tol_um``; :func:`ffcomp.gcode.holds.unrunnable_rests`)
     micro_holds: int = 0
+    #: the feed re-timing (Marlin, ``retime_passes``): passes run, the largest lateness on the
+    #: absolute clock before and after (ms), and its time (s)
+    retime_passes: int = 0
+    retime_before_ms: float | None = None
+    retime_after_ms: float | None = None
+    retime_time_s: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

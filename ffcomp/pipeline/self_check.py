@@ -62,15 +62,21 @@ def merge(parts: list[dict], k_offsets: list[int], dt: float) -> dict:
 
 
 def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = None, head_len: int = 0,
-            name: str | None = None, chains: bool = True) -> dict:
+            name: str | None = None, chains: bool = True, trace: list | None = None,
+            trace_other: list | None = None, timing_only: bool = False) -> dict:
     """The self-check's numbers (see :func:`self_check`) for the output ``path`` (a file name, or an
     iterable of its lines named ``name``), re-planned from rest at ``start_mm``.
 
     ``chains``: re-plan the runs of straight moves between rests vectorised
     (:class:`~ffcomp.gcode.klipper_chains.KlipperChainPlanner`: the same plan to about 1e-9 s, 2x
-    faster); False: move by move.
+    faster); False: move by move.  ``trace``: a list to append the per-segment rows to (as
+    :data:`TRACE`; default :data:`TRACE`); ``trace_other``: a list to append ``(line, kind, start s,
+    duration s)`` of every other re-planned move to (extruder-only moves, dwells).  ``timing_only``:
+    measure the clock only (the trace and the drift; no positions are compared).
     """
     t_start = time.perf_counter()
+    if trace is None:
+        trace = TRACE
     qf = open(qfile, "rb")  # read in windows: a memory map would keep the whole file resident
     table = _SegmentTable(segfile, head_len)
     dt = 1.0 / profile.limits.sample_rate_hz
@@ -148,12 +154,14 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         c = np.array([anchor[s_] for s_ in stream.tolist()]) if len(anchor) > 1 else \
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + fb + c)  # how late each segment ends, s
-        if TRACE is not None:
-            TRACE.append((R[:, 0].copy(), t0 + dur, late.copy(), dur.copy(), (kb - ka) * dt + fb - fa))
+        if trace is not None:
+            trace.append((R[:, 0].copy(), t0 + dur, late.copy(), dur.copy(), (kb - ka) * dt + fb - fa))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
         drift["end"] = float(late[-1])
+        if timing_only:
+            return
         cnt = kb - ka
         idx = np.repeat(np.arange(len(R)), cnt)
         k = np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt) + 1
@@ -188,6 +196,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
         else:
             buf.append(last)
             n_rows += 1
+            if trace_other is not None and last.kind != MOVE:
+                trace_other.append((last.lineno, last.kind, last.t_start_s, last.t_end_s - last.t_start_s))
         if n_rows >= 5000:
             flush_rows()
             n_rows = 0
