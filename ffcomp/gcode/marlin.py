@@ -174,17 +174,19 @@ class MarlinPlanner:
         return (x, y, z, end[3])
 
     def move(self, end, speed: float, line) -> None:
+        # (the loops over the four axes are written out: the same arithmetic in the same order, at
+        # a third of the cost; the feed re-timing plans a Marlin file several times)
         sp = self.commanded_pos
         end = self._clamp(end)
-        d = [end[i] - sp[i] for i in range(4)]
-        mm = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        d0, d1, d2, d3 = end[0] - sp[0], end[1] - sp[1], end[2] - sp[2], end[3] - sp[3]
+        mm = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
         is_kin = mm >= 1e-9
         if not is_kin:
-            if not d[3]:
+            if not d3:
                 return
-            d[0] = d[1] = d[2] = 0.0
+            d0 = d1 = d2 = 0.0
             end = (sp[0], sp[1], sp[2], end[3])
-            mm = abs(d[3])
+            mm = abs(d3)
         b = _Block()
         b.lineno = line.lineno
         b.start = tuple(sp)
@@ -192,42 +194,45 @@ class MarlinPlanner:
         b.is_kin = is_kin
         b.millimeters = mm
         inv_mm = 1.0 / mm
-        fr = max(speed, self.min_feedrate if d[3] else self.min_travel_feedrate)
+        fr = max(speed, self.min_feedrate if d3 else self.min_travel_feedrate)
         inv_secs = fr * inv_mm
         nominal = fr
         factor = 1.0
-        for i in range(4):
-            cs = abs(d[i] * inv_secs)
-            if cs > self.max_feedrate[i]:
-                factor = min(factor, self.max_feedrate[i] / cs)
+        mf = self.max_feedrate
+        for di, mfi in ((d0, mf[0]), (d1, mf[1]), (d2, mf[2]), (d3, mf[3])):
+            cs = abs(di * inv_secs)
+            if cs > mfi:
+                factor = min(factor, mfi / cs)
         nominal *= factor
         b.nominal_speed = nominal
+        ma = self.max_accel
         if not is_kin:
             accel = self.retract_accel
         else:
-            accel = self.print_accel if d[3] else self.travel_accel
-            for i in range(4):
-                if d[i]:
-                    accel = min(accel, self.max_accel[i] * mm / abs(d[i]))
+            accel = self.print_accel if d3 else self.travel_accel
+            for di, mai in ((d0, ma[0]), (d1, ma[1]), (d2, ma[2]), (d3, ma[3])):
+                if di:
+                    accel = min(accel, mai * mm / abs(di))
         b.accel = accel
         min_v2 = min(0.5 * accel / self.steps_per_mm, nominal * nominal)
         # unit vector for the junction: XYZE normalised when the block extrudes, else XYZ / millimeters
-        if d[3]:
-            n = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2] + d[3] * d[3])
-            unit = (d[0] / n, d[1] / n, d[2] / n, d[3] / n)
+        if d3:
+            n = math.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3)
+            unit = (d0 / n, d1 / n, d2 / n, d3 / n)
         else:
-            unit = (d[0] * inv_mm, d[1] * inv_mm, d[2] * inv_mm, 0.0)
+            unit = (d0 * inv_mm, d1 * inv_mm, d2 * inv_mm, 0.0)
         if self.queue and self.prev_nominal_speed > 1e-9:
             pu = self.prev_unit
-            cos_t = -(pu[0] * unit[0] + pu[1] * unit[1] + pu[2] * unit[2] + pu[3] * unit[3])
-            ju = [unit[i] - pu[i] for i in range(4)]
-            jn = math.sqrt(sum(x * x for x in ju))
+            u0, u1, u2, u3 = unit
+            cos_t = -(pu[0] * u0 + pu[1] * u1 + pu[2] * u2 + pu[3] * u3)
+            j0, j1, j2, j3 = u0 - pu[0], u1 - pu[1], u2 - pu[2], u3 - pu[3]
+            jn = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2 + j3 * j3)
             ja = accel
             if jn > 0.0:
-                for i in range(4):
-                    c = abs(ju[i] / jn)
-                    if c and ja * c > self.max_accel[i]:
-                        ja = self.max_accel[i] / c
+                for ji, mai in ((j0, ma[0]), (j1, ma[1]), (j2, ma[2]), (j3, ma[3])):
+                    c = abs(ji / jn)
+                    if c and ja * c > mai:
+                        ja = mai / c
             v2 = self._corner_v2(cos_t, ja, self.junction_deviation, mm, min_v2, self.small_segments)
             v2 = min(v2, nominal * nominal, self.prev_nominal_speed ** 2)
         else:
@@ -250,11 +255,13 @@ class MarlinPlanner:
         next_entry = 0.0
         for i in range(n - 1, 0, -1):
             b = q[i]
-            b.entry_sqr = min(b.max_entry_sqr, next_entry + 2.0 * b.accel * b.millimeters)
-            next_entry = b.entry_sqr
+            e = next_entry + 2.0 * b.accel * b.millimeters
+            mx = b.max_entry_sqr
+            next_entry = b.entry_sqr = mx if mx < e else e
         # forward pass
+        p = q[0]
         for i in range(1, n):
-            p, b = q[i - 1], q[i]
+            b = q[i]
             if p.entry_sqr < b.entry_sqr:
                 new_exit = p.entry_sqr + 2.0 * p.accel * p.millimeters
                 if new_exit < b.entry_sqr:
@@ -262,12 +269,14 @@ class MarlinPlanner:
                     b.entry_sqr = new_exit
                     b.max_entry_sqr = new_exit
             b.min_entry_sqr = b.entry_sqr
+            p = b
 
     def _emit(self, b: _Block, exit_sqr: float) -> None:
         v0, vc, v1, ta, tc, td = _trapezoid(b.millimeters, math.sqrt(b.entry_sqr), math.sqrt(exit_sqr),
                                             b.nominal_speed, b.accel)
         if b.is_kin:
-            unit = tuple((b.end[i] - b.start[i]) / b.millimeters for i in range(4))
+            e, st, mm = b.end, b.start, b.millimeters
+            unit = ((e[0] - st[0]) / mm, (e[1] - st[1]) / mm, (e[2] - st[2]) / mm, (e[3] - st[3]) / mm)
         else:
             unit = (0.0, 0.0, 0.0, math.copysign(1.0, b.end[3] - b.start[3]))
         t = self.print_time
