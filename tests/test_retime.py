@@ -50,8 +50,11 @@ def test_marlin_output_holds_the_absolute_clock(tmp_path, which):
     assert s.retime_after_ms == pytest.approx(abs(s.self_check_drift_ms), abs=1e-6)
     assert s.self_check_max_um < 20.0  # the shape is untouched: only feeds changed
     text = (tmp_path / "o.gcode").read_text()
-    # the source's retraction acceleration stays in force (the plan timed the retractions with it)
+    # the source's retraction acceleration stays in force (the plan timed the retractions with it),
+    # while the header lifts the E axis's acceleration on printing moves with the others
     assert "\nM204 R5000 ; ffcomp: the source's extruder limit" in text
+    a = f"{s.header_accel_mm_s2:.0f}"
+    assert f"\nM201 X{a} Y{a} Z{a} E{a}\n" in text
 
 
 def test_klipper_output_is_not_retimed_and_keeps_no_extruder_lines(tmp_path, profile):

@@ -151,14 +151,16 @@ class WriterStats:
 
 
 def extruder_limit_lines(op: LimitsChange) -> list[str]:
-    """The Marlin commands that set only the extruder limits a limit command ``op`` names: the
-    retraction acceleration (M204 R), the E axis's acceleration (M201 E) and feed rate (M203 E)."""
+    """The Marlin commands that keep the extruder limits of a limit command ``op`` in force for the
+    extruder-only moves (with which the plan timed them): the retraction acceleration (M204 R; Marlin
+    applies no per-axis limit to a retraction) and the E axis's feed rate (M203 E).  The E axis's
+    acceleration on printing moves (M201 E) stays raised with the others by the header."""
     out = []
     if op.retract_accel_mm_s2 is not None:
         out.append(f"M204 R{op.retract_accel_mm_s2:g}")
-    for cmd, axes in (("M201", op.max_accel_axes_mm_s2), ("M203", op.max_feedrate_axes_mm_s)):
-        if axes is not None and len(axes) > 3 and axes[3] is not None:
-            out.append(f"{cmd} E{axes[3]:g}")
+    feed = op.max_feedrate_axes_mm_s
+    if feed is not None and len(feed) > 3 and feed[3] is not None:
+        out.append(f"M203 E{feed[3]:g}")
     return out
 
 
@@ -187,9 +189,6 @@ class GcodeWriter:
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
-        #: Marlin's E-axis acceleration limit (M201 E, mm/s^2): a block that extrudes accelerates at most
-        #: at ``e_accel * d/|de|`` (inf: no such limit, as in Klipper)
-        self.e_accel = float("inf")
         #: keep the extruder limits of the source's limit commands (Marlin's M204 R, M201 E, M203 E,
         #: with which the plan times its extruder-only moves) while the rest is baked in
         self.extruder_limits = False
@@ -651,7 +650,7 @@ class GcodeWriter:
             for q in np.nonzero(wait > 0)[0].tolist():  # (only ever a run's first segment)
                 ch.run_wait[int(run_ids[srun[q]])] = float(wait[q])
         else:
-            v = self._firmware_feeds(d, dist, dt, hold, stop_first, de)
+            v = self._firmware_feeds(d, dist, dt, hold, stop_first)
             v = np.where(hold, np.where(np.abs(de) > 1e-9, np.maximum(np.abs(de) / dt, 1e-3), dt), v)
         if runs[-1].kind != MOVE:
             self.f_last = 0.0
@@ -812,7 +811,7 @@ class GcodeWriter:
     def _dwell(self, mv: PlannedMove, lineno: int) -> None:
         self._w(f"G4 P{mv.cruise_t_s * 1000:{'.0f' if self.chain is None else '.3f'}}\n")
 
-    def _firmware_feeds(self, d, dist, dt, hold, stop_before, de=None) -> np.ndarray:
+    def _firmware_feeds(self, d, dist, dt, hold, stop_before) -> np.ndarray:
         """Feed rates that make the firmware's trapezoids last the intended durations.
 
         A segment cruises at its F, but the firmware enters it at the junction speed
@@ -830,9 +829,6 @@ class GcodeWriter:
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(dz > 0, dist / np.maximum(dz, 1e-12), np.inf)
         a = np.minimum(self.accel, self.max_z_accel * ratio)
-        if de is not None and np.isfinite(self.e_accel):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                a = np.minimum(a, np.where(np.abs(de) > 0, self.e_accel * dist / np.maximum(np.abs(de), 1e-12), np.inf))
         if not np.all(np.isfinite(a)):
             return v
         stop = np.concatenate([[False], hold[:-1]]) | stop_before

@@ -296,10 +296,12 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                              max_z_velocity_mm_s=profile.limits.max_z_velocity_mm_s, segment_table=sf,
                              chain_limits=chain)
         writer.start_travel_mm_s = start.travel_mm_s if cuts is None or cuts.first else None
-        if chain is None:  # Marlin: the header's M201 E; the source's extruder limits stay in force
-            writer.e_accel = profile.limits.max_extrude_only_accel_mm_s2
+        if chain is None:  # Marlin: the source's extruder limits stay in force for its retractions
             writer.extruder_limits = True
         pred = Predictor(model, dt) if opts.predict else None
+        # (Klipper: moves its extruder's limits bind follow the plan.  Marlin: none; its header lifts
+        # the E axis's acceleration with the others, as Klipper has none on printing moves.  Letting
+        # Klipper's rule pin them on Marlin too put more files off the clock: bench_marlin_clock.py)
         bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
         pin_stats = PinStats()
         zlim = ZLimited(chain) if chain is not None else None
