@@ -53,6 +53,17 @@ def test_marlin_output_holds_the_absolute_clock(tmp_path, which):
     # the source's retraction acceleration stays in force (the plan timed the retractions with it),
     # while the header lifts the E axis's acceleration on printing moves with the others
     assert "\nM204 R5000 ; ffcomp: the source's extruder limit" in text
+    # the slicer's retraction speeds change within EXTRUDE_FEED_RANGE
+    import re
+
+    from ffcomp.pipeline.retime import EXTRUDE_FEED_RANGE
+
+    def eo_feeds(t):
+        return [float(m.group(1)) for m in re.finditer(r"\nG1 E-?[0-9.]+ F([0-9.]+)", t)]
+
+    f0, f1 = eo_feeds((tmp_path / "o0.gcode").read_text()), eo_feeds(text)
+    assert len(f0) == len(f1) >= 6
+    assert all(EXTRUDE_FEED_RANGE[0] - 1e-6 <= b / a <= EXTRUDE_FEED_RANGE[1] + 1e-6 for a, b in zip(f0, f1))
     a = f"{s.header_accel_mm_s2:.0f}"
     assert f"\nM201 X{a} Y{a} Z{a} E{a}\n" in text
 

@@ -37,6 +37,9 @@ _E = re.compile(r"(?<=\s)E(-?[0-9.]+)")
 #: a lateness jump across a gap beyond this (s) is a stop (a heater wait, M600: a new clock), not
 #: a retraction's timing
 _GAP_MAX_S = 0.05
+#: the range of an extruder-only move's feed, as a factor of the written one (the slicer's
+#: retraction speed): what a gap asks beyond it is taken back by the segments around it
+EXTRUDE_FEED_RANGE = (0.7, 1.5)
 
 
 class RetimeResult:
@@ -74,9 +77,10 @@ def _extrude_only_feed(f_mm_s: float, d_mm: float, a_mm_s2: float, dT_s: float, 
     return float(f), dur(f) - t0
 
 
-def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float) -> np.ndarray:
+def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.ndarray | None = None) -> np.ndarray:
     """How much of the lateness ``left`` before each segment (s; sparse) each segment takes back
-    (s): the lateness seen at a segment decays by ``exp(-duration / tau_s)`` across it."""
+    (s): the lateness seen at a segment decays by ``exp(-duration / tau_s)`` across it; none is
+    carried into a segment where ``breaks`` is set (a new clock after a stop)."""
     back = np.zeros(len(left))
     nz = np.nonzero(left)[0]
     carry, k, ptr, n = 0.0, 0, 0, len(left)
@@ -87,6 +91,8 @@ def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float) -> np.ndarray:
             if ptr >= len(nz):
                 break
             carry, k = 0.0, int(nz[ptr])
+        if breaks is not None and breaks[k]:
+            carry = 0.0
         seen = carry + left[k]
         r = math.exp(-want[k] / tau_s)
         back[k] = (1.0 - r) * seen
@@ -106,8 +112,16 @@ def _secant_feed(f: float, t: float, prev: tuple | None, dT: float, f_top: float
     return float(min(max(f + dT / slope, 0.3 * f), f_top))
 
 
+def _trapezoid_time(f: float, d: float, a: float) -> float:
+    """Duration (s) of an extruder-only move of ``d`` mm at feed ``f`` (mm/s) and acceleration ``a``
+    from rest to rest (a triangle beyond ``sqrt(a d)``)."""
+    f = min(f, math.sqrt(a * d))
+    return d / f + f / a
+
+
 def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax: float, catch_up_s: float,
-                 hist: dict | None = None, seg_hist: dict | None = None, limited: set | None = None):
+                 hist: dict | None = None, seg_hist: dict | None = None, limited: set | None = None,
+                 first_f: dict | None = None):
     """Per output line: the factor for a segment's F, and the new F (mm/s) of extruder-only moves.
 
     ``lines_f``: the extruder-only moves' current ``(F mm/s, |E| mm)`` by output line.  The part of a
@@ -115,6 +129,7 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
     back by the segments after it, over a time constant ``catch_up_s``.  ``hist``: each extruder-only
     move's ``(F mm/s, duration s)`` of the previous pass (the secant's other point: the trapezoid
     model misjudges a move the firmware enters at a junction speed); updated in place.
+    ``first_f``: each extruder-only move's feed as written (mm/s; updated in place).
     ``seg_hist``: each segment's ``(factor applied, duration before)`` of the previous pass, and
     ``limited``: the segments found not to follow their feed (a segment the firmware cannot run
     faster: it accelerates from rest at its limit); their excess joins the gaps' (both updated in
@@ -124,11 +139,15 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
     late = np.concatenate([r[2] for r in rows])
     dur = np.concatenate([r[3] for r in rows])
     want = np.concatenate([r[4] for r in rows])
+    stream = np.concatenate([r[5] for r in rows])
     # the lateness each gap adds: the jump of lateness across it less what the segment itself adds
+    # (a gap with a stop in it starts a new clock: not a gap to time)
     jump = late - (dur - want) - np.concatenate([[0.0], late[:-1]])
+    jump[1:][stream[1:] != stream[:-1]] = 0.0
     gap: dict[int, float] = {}
-    left = np.zeros(len(line))  # lateness a gap leaves for the segments after it, s
+    left = np.zeros(len(line))  # lateness a gap leaves for the segments after it, s (within a stream)
     lim_mask = np.zeros(len(line), bool)
+    last_ahead = 0.0
     if seg_hist is not None and limited is not None:
         if seg_hist:
             for k, n in enumerate(line.tolist()):
@@ -136,13 +155,15 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 if h is None or n in limited:
                     continue
                 sc, d0 = h
-                asked = d0 - d0 / sc  # what the factor should have changed
-                if sc > 1.0 and asked > 1e-7 and (d0 - dur[k]) < 0.3 * asked:
+                asked = d0 - d0 / sc  # what the factor should have changed (either way)
+                if abs(asked) > 1e-7 and (d0 - dur[k]) / asked < 0.3:
                     limited.add(n)
         if limited:
             lim_mask = np.fromiter((n in limited for n in line.tolist()), bool, len(line))
             excess = np.where(lim_mask, dur - want, 0.0)
             left[1:] += excess[:-1]
+            if lim_mask[-1] and len(line) > 1:  # the last segment: its excess is run ahead of it, in full
+                last_ahead = float(excess[-1])
     if other:
         ol = np.array([o[0] for o in other], dtype=np.int64)
         kinds = [o[1] for o in other]
@@ -160,21 +181,31 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 n = int(ol[i])
                 f, d = lines_f[n]
                 dT = -float(jump[k]) * odur[i] / tot
-                gap[n], got = _extrude_only_feed(f, d, e_accel, dT, e_vmax)
+                fn, _ = _extrude_only_feed(f, d, e_accel, dT, e_vmax)
                 sec = _secant_feed(f, float(odur[i]), None if hist is None else hist.get(n), dT,
                                    min(math.sqrt(e_accel * d), e_vmax))
                 if sec is not None:
-                    gap[n] = sec
+                    fn = sec
+                # the slicer's retraction speed changes by at most EXTRUDE_FEED_RANGE
+                f0 = f if first_f is None else first_f.setdefault(n, f)
+                fn = min(max(fn, f0 * EXTRUDE_FEED_RANGE[0]), f0 * EXTRUDE_FEED_RANGE[1])
+                gap[n] = fn
                 if hist is not None:
                     hist[n] = (f, float(odur[i]))
-                done += got
+                done += _trapezoid_time(fn, d, e_accel) - _trapezoid_time(f, d, e_accel)
             left[k] = float(jump[k]) + done
+    bnd = np.concatenate([[False], stream[1:] != stream[:-1]])  # a stop between: a new clock
+    rbnd = np.concatenate([[False], bnd[::-1][:-1]])
+    left[bnd] = 0.0  # (nothing carried across a stop)
     # half of what a gap cannot take back is run ahead of time before it (the segments before it
     # end early, down to half of it at the gap) and half is taken back after it: the largest
     # lateness is half the jump, not all of it
     ahead = np.zeros(len(left))
     ahead[:-1] = 0.5 * left[1:]
-    target = want - _taken_back(0.5 * left, want, catch_up_s) - _taken_back(ahead[::-1], want[::-1], catch_up_s)[::-1]
+    if last_ahead:
+        ahead[-2] += last_ahead
+    target = (want - _taken_back(0.5 * left, want, catch_up_s, bnd)
+              - _taken_back(ahead[::-1], want[::-1], catch_up_s, rbnd)[::-1])
     ok = (want > 1e-6) & (dur > 0) & (np.abs(dur - target) > 1e-7)
     scale = np.clip(np.where(ok, dur / np.where(ok, np.maximum(target, 0.5 * want), 1.0), 1.0), 0.7, 1.5)
     ok &= ~lim_mask
@@ -231,6 +262,7 @@ def retime_file(path: str, qfile: str, profile, geom, start_mm, segfile: str, he
     hist: dict = {}
     seg_hist: dict = {}
     limited: set = set()
+    first_f: dict = {}
     try:
         for p in range(passes + 1):
             rows: list = []
@@ -251,7 +283,7 @@ def retime_file(path: str, qfile: str, profile, geom, start_mm, segfile: str, he
             if p >= 2 and min(worst[-2:]) > 0.95 * min(worst[:-2]):  # two passes without a 5 % gain
                 break
             eo = _extrude_only_lines(path, {int(o[0]) for o in other if o[1] in (EXTRUDE, FIRMWARE)})
-            seg, gap = _corrections(rows, other, eo, e_accel, e_vmax, catch_up_s, hist, seg_hist, limited)
+            seg, gap = _corrections(rows, other, eo, e_accel, e_vmax, catch_up_s, hist, seg_hist, limited, first_f)
             if not seg and not gap:
                 break
             if tmp is None:

@@ -22,7 +22,8 @@ __all__ = ["self_check", "measure", "merge", "judge", "shape_limit_um", "TIMING_
 TIMING_NOTE_MS = 0.2
 
 #: a list, or None: if a list, :func:`measure` appends per batch of re-planned segments
-#: ``(output line, end time s, lateness s, re-planned duration s, intended duration s)`` (debugging)
+#: ``(output line, end time s, lateness s, re-planned duration s, intended duration s, stream)``
+#: (debugging; a stream is a stretch between stops, each on its own clock)
 TRACE: list | None = None
 
 
@@ -155,7 +156,7 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
             np.full(len(R), next(iter(anchor.values())))
         late = (t0 + dur) - (kb * dt + fb + c)  # how late each segment ends, s
         if trace is not None:
-            trace.append((R[:, 0].copy(), t0 + dur, late.copy(), dur.copy(), (kb - ka) * dt + fb - fa))
+            trace.append((R[:, 0].copy(), t0 + dur, late.copy(), dur.copy(), (kb - ka) * dt + fb - fa, stream.copy()))
         i = int(np.argmax(np.abs(late)))
         if abs(late[i]) > abs(drift["max"]):
             drift["max"], drift["at"] = float(late[i]), float(kb[i] * dt)
