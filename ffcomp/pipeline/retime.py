@@ -12,7 +12,13 @@ re-plans the file with the firmware-faithful planner (the self-check's own measu
   gets a higher feed), and
 * gives each gap between two runs (the extruder-only moves of a retraction, where the nozzle stands)
   the time it lacks or has too much: the extruder-only moves' feeds are solved, on the trapezoid
-  ``T(F) = d/F + F/a``, for the change of duration the lateness jump across the gap asks,
+  ``T(F) = d/F + F/a`` and then by a secant on the previous pass, for the change of duration the
+  lateness jump across the gap asks, within :data:`EXTRUDE_FEED_RANGE` of the slicer's feed;
+* what a gap cannot give (the extruder at its limits) and what a segment does not give (one that
+  does not follow its feed: it accelerates at a limit) is run half ahead of it and taken back half
+  after it, over a time constant of 20 ms, so the largest lateness is half such a jump;
+* a stop (a heater wait, M600) starts a new clock: no gap across one is timed and nothing is
+  carried over it,
 
 a few passes, keeping the best file seen (the largest lateness on the absolute clock).
 """
