@@ -50,8 +50,8 @@ def test_marlin_output_holds_the_absolute_clock(tmp_path, which):
     assert s.retime_after_ms == pytest.approx(abs(s.self_check_drift_ms), abs=1e-6)
     assert s.self_check_max_um < 20.0  # the shape is untouched: only feeds changed
     text = (tmp_path / "o.gcode").read_text()
-    # the source's retraction acceleration stays in force (the plan timed the retractions with it),
-    # while the header lifts the E axis's acceleration on printing moves with the others
+    # the source's retraction acceleration stays in force (the plan timed the retractions with it);
+    # the header does not lift the E axis's acceleration (it bounds the extruder's velocity jumps)
     assert "\nM204 R5000 ; ffcomp: the source's extruder limit" in text
     # the slicer's retraction speeds change within EXTRUDE_FEED_RANGE
     import re
@@ -65,7 +65,7 @@ def test_marlin_output_holds_the_absolute_clock(tmp_path, which):
     assert len(f0) == len(f1) >= 6
     assert all(EXTRUDE_FEED_RANGE[0] - 1e-6 <= b / a <= EXTRUDE_FEED_RANGE[1] + 1e-6 for a, b in zip(f0, f1))
     a = f"{s.header_accel_mm_s2:.0f}"
-    assert f"\nM201 X{a} Y{a} Z{a} E{a}\n" in text
+    assert f"\nM201 X{a} Y{a} Z{a} E{prof.limits.max_extrude_only_accel_mm_s2:g}\n" in text
 
 
 def test_klipper_output_is_not_retimed_and_keeps_no_extruder_lines(tmp_path, profile):

@@ -151,16 +151,15 @@ class WriterStats:
 
 
 def extruder_limit_lines(op: LimitsChange) -> list[str]:
-    """The Marlin commands that keep the extruder limits of a limit command ``op`` in force for the
-    extruder-only moves (with which the plan timed them): the retraction acceleration (M204 R; Marlin
-    applies no per-axis limit to a retraction) and the E axis's feed rate (M203 E).  The E axis's
-    acceleration on printing moves (M201 E) stays raised with the others by the header."""
+    """The Marlin commands that keep the extruder limits of a limit command ``op`` in force (the
+    plan was timed with them, and they protect the extruder): the retraction acceleration (M204 R),
+    the E axis's acceleration (M201 E) and feed rate (M203 E)."""
     out = []
     if op.retract_accel_mm_s2 is not None:
         out.append(f"M204 R{op.retract_accel_mm_s2:g}")
-    feed = op.max_feedrate_axes_mm_s
-    if feed is not None and len(feed) > 3 and feed[3] is not None:
-        out.append(f"M203 E{feed[3]:g}")
+    for cmd, axes in (("M201", op.max_accel_axes_mm_s2), ("M203", op.max_feedrate_axes_mm_s)):
+        if axes is not None and len(axes) > 3 and axes[3] is not None:
+            out.append(f"{cmd} E{axes[3]:g}")
     return out
 
 

@@ -299,9 +299,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
         if chain is None:  # Marlin: the source's extruder limits stay in force for its retractions
             writer.extruder_limits = True
         pred = Predictor(model, dt) if opts.predict else None
-        # (Klipper: moves its extruder's limits bind follow the plan.  Marlin: none; its header lifts
-        # the E axis's acceleration with the others, as Klipper has none on printing moves.  Letting
-        # Klipper's rule pin them on Marlin too put more files off the clock: bench_marlin_clock.py)
+        # (Klipper: moves its extruder's limits bind follow the plan.  Marlin: none; letting Klipper's
+        # rule pin them on Marlin too put more files off the clock: bench_marlin_clock.py)
         bound = LimitBound(chain) if opts.plan_where_limited and chain is not None else None
         pin_stats = PinStats()
         zlim = ZLimited(chain) if chain is not None else None

@@ -306,13 +306,14 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
                 *shaper_foot]
     else:
         # the limits the body is timed with: the run-time accelerations raised (the segments carry the
-        # timing; the E axis's too, on printing moves: Klipper has no such limit, and Marlin's, with
-        # its junction rule for short segments, held 1 ms chords of extrusion-heavy moves below their
-        # feeds), the rest at the profile's values, set here so that the printer's EEPROM cannot differ
+        # timing), the rest at the profile's values, set here so that the printer's EEPROM cannot
+        # differ.  Not the E axis's (M201 E): it also bounds the extruder's velocity jump where Marlin
+        # joins a retraction to a printing move at a junction speed (about 12 mm/s at 3000 mm/s^2;
+        # 35 mm/s, the whole retraction speed, with it raised to the header's acceleration)
         e_acc, v, vz, ve = (lim.max_extrude_only_accel_mm_s2, lim.max_velocity_mm_s, lim.max_z_velocity_mm_s,
                             lim.max_extrude_only_velocity_mm_s)
         head += [f"M204 P{accel:.0f} T{accel:.0f} R{e_acc:g}",
-                 f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f} E{accel:.0f}",
+                 f"M201 X{accel:.0f} Y{accel:.0f} Z{accel:.0f} E{e_acc:g}",
                  f"M203 X{v:g} Y{v:g} Z{vz:g} E{ve:g} ; ffcomp: the profile's, which the file is timed for",
                  f"M205 J{lim.junction_deviation_mm:g} S0 T0 ; ffcomp: the profile's junction deviation, no minimum "
                  "feed rates (a junction-deviation Marlin build)"]

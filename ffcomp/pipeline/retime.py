@@ -65,22 +65,40 @@ class RetimeResult:
         return self.worst_ms[self.kept] if self.worst_ms else 0.0
 
 
-def _extrude_only_feed(f_mm_s: float, d_mm: float, a_mm_s2: float, dT_s: float, vmax_mm_s: float
-                       ) -> tuple[float, float]:
-    """The feed (mm/s) that changes an extruder-only move's duration by ``dT_s`` on the trapezoid
-    ``T(F) = d/F + F/a`` (from rest to rest; ``F <= sqrt(a d)``, beyond which a triangle's duration
-    does not depend on F), bounded by ``vmax_mm_s``; and the change of duration it gives (s)."""
-    f_top = min(math.sqrt(a_mm_s2 * d_mm), vmax_mm_s)
+def _trapezoid_time(f: float, d: float, a: float, v0: float = 0.0, v1: float = 0.0) -> float:
+    """Duration (s) of a move of ``d`` mm at feed ``f`` (mm/s) and acceleration ``a`` (mm/s^2),
+    entered at ``v0`` and left at ``v1`` (a triangle where ``f`` is beyond its reach)."""
+    f = max(min(f, math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1))), max(v0, v1, 1e-9))
+    return (f - v0) / a + (f - v1) / a + (d - (2.0 * f * f - v0 * v0 - v1 * v1) / (2.0 * a)) / f
 
-    def dur(f):
-        f = min(f, math.sqrt(a_mm_s2 * d_mm))
-        return d_mm / f + f / a_mm_s2
 
-    t0 = dur(f_mm_s)
+def _extrude_only_feed(f_mm_s: float, d_mm: float, a_mm_s2: float, dT_s: float, vmax_mm_s: float,
+                       v0: float = 0.0, v1: float = 0.0) -> tuple[float, float]:
+    """The feed (mm/s) that changes an extruder-only move's duration by ``dT_s`` on its trapezoid
+    (:func:`_trapezoid_time`, entered at ``v0`` and left at ``v1``: Marlin joins an extruder-only
+    block to its neighbours at a junction speed), bounded by ``vmax_mm_s`` and by the triangle's
+    reach; and the change of duration it gives (s).  ``T F = F^2/a - (v0 + v1) F/a + d + (v0^2 +
+    v1^2)/2a`` is a quadratic in F: its smaller root is the trapezoid's feed."""
+    a, d = a_mm_s2, d_mm
+    f_top = min(math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1)), vmax_mm_s)
+    t0 = _trapezoid_time(f_mm_s, d, a, v0, v1)
     c = t0 + dT_s  # the duration asked
-    disc = (a_mm_s2 * c) ** 2 - 4.0 * a_mm_s2 * d_mm
-    f = f_top if c <= 0 or disc <= 0 else min(0.5 * (a_mm_s2 * c - math.sqrt(disc)), f_top)
-    return float(f), dur(f) - t0
+    b = a * c + v0 + v1
+    disc = b * b - 4.0 * (a * d + 0.5 * (v0 * v0 + v1 * v1))
+    f = f_top if c <= 0 or disc <= 0 else min(0.5 * (b - math.sqrt(disc)), f_top)
+    f = max(f, v0, v1, 1e-6)
+    return float(f), _trapezoid_time(f, d, a, v0, v1) - t0
+
+
+def _secant_feed(f: float, t: float, prev: tuple | None, dT: float, f_top: float) -> float | None:
+    """The feed (mm/s) for a change ``dT`` of an extruder-only move's duration ``t`` at feed ``f``,
+    from the slope measured against the previous pass ``prev = (f, t)``; None without a usable one."""
+    if prev is None or abs(f - prev[0]) < 1e-6 * f:
+        return None
+    slope = (t - prev[1]) / (f - prev[0])
+    if not slope < -1e-12:  # (a faster feed must shorten it; else the model decides)
+        return None
+    return float(min(max(f + dT / slope, 0.3 * f), f_top))
 
 
 def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.ndarray | None = None) -> np.ndarray:
@@ -105,24 +123,6 @@ def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.nda
         carry = r * seen
         k += 1
     return back
-
-
-def _secant_feed(f: float, t: float, prev: tuple | None, dT: float, f_top: float) -> float | None:
-    """The feed (mm/s) for a change ``dT`` of an extruder-only move's duration ``t`` at feed ``f``,
-    from the slope measured against the previous pass ``prev = (f, t)``; None without a usable one."""
-    if prev is None or abs(f - prev[0]) < 1e-6 * f:
-        return None
-    slope = (t - prev[1]) / (f - prev[0])
-    if not slope < -1e-12:  # (a faster feed must shorten it; else the model decides)
-        return None
-    return float(min(max(f + dT / slope, 0.3 * f), f_top))
-
-
-def _trapezoid_time(f: float, d: float, a: float) -> float:
-    """Duration (s) of an extruder-only move of ``d`` mm at feed ``f`` (mm/s) and acceleration ``a``
-    from rest to rest (a triangle beyond ``sqrt(a d)``)."""
-    f = min(f, math.sqrt(a * d))
-    return d / f + f / a
 
 
 def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax: float, catch_up_s: float,
@@ -187,9 +187,10 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 n = int(ol[i])
                 f, d = lines_f[n]
                 dT = -float(jump[k]) * odur[i] / tot
-                fn, _ = _extrude_only_feed(f, d, e_accel, dT, e_vmax)
+                v0, v1, acc = float(other[i][4]), float(other[i][5]), float(other[i][6]) or e_accel
+                fn, _ = _extrude_only_feed(f, d, acc, dT, e_vmax, v0, v1)
                 sec = _secant_feed(f, float(odur[i]), None if hist is None else hist.get(n), dT,
-                                   min(math.sqrt(e_accel * d), e_vmax))
+                                   min(math.sqrt(acc * d + 0.5 * (v0 * v0 + v1 * v1)), e_vmax))
                 if sec is not None:
                     fn = sec
                 # the slicer's retraction speed changes by at most EXTRUDE_FEED_RANGE
@@ -198,7 +199,7 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 gap[n] = fn
                 if hist is not None:
                     hist[n] = (f, float(odur[i]))
-                done += _trapezoid_time(fn, d, e_accel) - _trapezoid_time(f, d, e_accel)
+                done += _trapezoid_time(fn, d, acc, v0, v1) - _trapezoid_time(f, d, acc, v0, v1)
             left[k] = float(jump[k]) + done
     bnd = np.concatenate([[False], stream[1:] != stream[:-1]])  # a stop between: a new clock
     rbnd = np.concatenate([[False], bnd[::-1][:-1]])

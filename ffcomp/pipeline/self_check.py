@@ -72,7 +72,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
     (:class:`~ffcomp.gcode.klipper_chains.KlipperChainPlanner`: the same plan to about 1e-9 s, 2x
     faster); False: move by move.  ``trace``: a list to append the per-segment rows to (as
     :data:`TRACE`; default :data:`TRACE`); ``trace_other``: a list to append ``(line, kind, start s,
-    duration s)`` of every other re-planned move to (extruder-only moves, dwells).  ``timing_only``:
+    duration s, entry and exit speed mm/s, acceleration mm/s^2)`` of every other re-planned move to
+    (extruder-only moves, dwells).  ``timing_only``:
     measure the clock only (the trace and the drift; no positions are compared).
     """
     t_start = time.perf_counter()
@@ -198,7 +199,8 @@ def measure(path, qfile: str, profile, geom, start_mm, segfile: str | None = Non
             buf.append(last)
             n_rows += 1
             if trace_other is not None and last.kind != MOVE:
-                trace_other.append((last.lineno, last.kind, last.t_start_s, last.t_end_s - last.t_start_s))
+                trace_other.append((last.lineno, last.kind, last.t_start_s, last.t_end_s - last.t_start_s,
+                                    last.start_v_mm_s, last.end_v_mm_s, last.accel_mm_s2))
         if n_rows >= 5000:
             flush_rows()
             n_rows = 0
