@@ -69,25 +69,36 @@ def _trapezoid_time(f: float, d: float, a: float, v0: float = 0.0, v1: float = 0
     """Duration (s) of a move of ``d`` mm at feed ``f`` (mm/s) and acceleration ``a`` (mm/s^2),
     entered at ``v0`` and left at ``v1`` (a triangle where ``f`` is beyond its reach)."""
     f = max(min(f, math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1))), max(v0, v1, 1e-9))
+    v0, v1 = min(v0, f), min(v1, f)
     return (f - v0) / a + (f - v1) / a + (d - (2.0 * f * f - v0 * v0 - v1 * v1) / (2.0 * a)) / f
 
 
 def _extrude_only_feed(f_mm_s: float, d_mm: float, a_mm_s2: float, dT_s: float, vmax_mm_s: float,
                        v0: float = 0.0, v1: float = 0.0) -> tuple[float, float]:
     """The feed (mm/s) that changes an extruder-only move's duration by ``dT_s`` on its trapezoid
-    (:func:`_trapezoid_time`, entered at ``v0`` and left at ``v1``: Marlin joins an extruder-only
-    block to its neighbours at a junction speed), bounded by ``vmax_mm_s`` and by the triangle's
-    reach; and the change of duration it gives (s).  ``T F = F^2/a - (v0 + v1) F/a + d + (v0^2 +
-    v1^2)/2a`` is a quadratic in F: its smaller root is the trapezoid's feed."""
-    a, d = a_mm_s2, d_mm
-    f_top = min(math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1)), vmax_mm_s)
-    t0 = _trapezoid_time(f_mm_s, d, a, v0, v1)
-    c = t0 + dT_s  # the duration asked
-    b = a * c + v0 + v1
-    disc = b * b - 4.0 * (a * d + 0.5 * (v0 * v0 + v1 * v1))
-    f = f_top if c <= 0 or disc <= 0 else min(0.5 * (b - math.sqrt(disc)), f_top)
-    f = max(f, v0, v1, 1e-6)
-    return float(f), _trapezoid_time(f, d, a, v0, v1) - t0
+    (:func:`_trapezoid_time`, entered at ``v0`` and left at ``v1``, each at most the feed: Marlin
+    joins an extruder-only block to its neighbours at a junction speed, which its own feed caps),
+    bounded by ``vmax_mm_s`` and by the triangle's reach; and the change of duration it gives (s).
+    The duration falls as the feed rises: bisection on the feed's logarithm."""
+    def T(f):
+        return _trapezoid_time(f, d_mm, a_mm_s2, min(v0, f), min(v1, f))
+
+    t0 = T(f_mm_s)
+    want = t0 + dT_s
+    lo, hi = 1e-3, max(min(math.sqrt(a_mm_s2 * d_mm + 0.5 * (v0 * v0 + v1 * v1)), vmax_mm_s), 1e-3)
+    if want >= T(lo):
+        f = lo
+    elif want <= T(hi):
+        f = hi
+    else:
+        for _ in range(60):
+            mid = math.sqrt(lo * hi)
+            if T(mid) > want:
+                lo = mid
+            else:
+                hi = mid
+        f = math.sqrt(lo * hi)
+    return float(f), T(f) - t0
 
 
 def _secant_feed(f: float, t: float, prev: tuple | None, dT: float, f_top: float) -> float | None:
@@ -199,7 +210,8 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 gap[n] = fn
                 if hist is not None:
                     hist[n] = (f, float(odur[i]))
-                done += _trapezoid_time(fn, d, acc, v0, v1) - _trapezoid_time(f, d, acc, v0, v1)
+                done += (_trapezoid_time(fn, d, acc, min(v0, fn), min(v1, fn))
+                         - _trapezoid_time(f, d, acc, min(v0, f), min(v1, f)))
             left[k] = float(jump[k]) + done
     bnd = np.concatenate([[False], stream[1:] != stream[:-1]])  # a stop between: a new clock
     rbnd = np.concatenate([[False], bnd[::-1][:-1]])
