@@ -188,8 +188,8 @@ class GcodeWriter:
         self.lines, self.out, self.dt, self.tol = lines, out, dt_s, tol_mm
         self.accel, self.max_z_accel, self.max_z_v = accel_mm_s2, max_z_accel_mm_s2, max_z_velocity_mm_s
         self.f_last = 0.0  # feed rate (mm/s) of the last segment written: the next junction speed
-        #: keep the extruder limits of the source's limit commands (Marlin's M204 R, M201 E, M203 E,
-        #: with which the plan times its extruder-only moves) while the rest is baked in
+        #: keep the extruder limits of the source's limit commands in force (Marlin's M204 R, M201 E,
+        #: M203 E: the plan was timed with them) while the rest is baked in
         self.extruder_limits = False
         self.moves = moves
         self.stats = WriterStats()
@@ -270,7 +270,7 @@ class GcodeWriter:
                 self.stats.lines_commented += 1
                 if isinstance(op, LimitsChange) and self.extruder_limits:
                     for cmd in extruder_limit_lines(op):
-                        w(cmd + " ; ffcomp: the source's extruder limit (its retractions are timed with it)\n")
+                        w(cmd + " ; ffcomp: the source's extruder limit (the plan was timed with it)\n")
                 continue
             if op is not None and type(op).__name__ == "Dwell":
                 continue  # written with its planned move, in time order
