@@ -383,6 +383,8 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     # written so only where the tightest of them, against the command's speed, gains on the sampled
     # chain's (a corner whose new in-chord was shorter than the sample it replaced capped the
     # junction before it, a z turn in cube_prusa on other_delta: +0.26 ms)
+    if b - 2 - n < 0 or b + m + 2 > len(X):
+        return None  # (no chord beyond the samples it would drop on one side: nothing to compare)
     S = X[b - 2 - n:b + m + 2]
     jv_s = _junction_speeds(lim, S)
     jv_n = _junction_speeds(lim, np.array([S[0], S[1], pc, S[-2], S[-1]]))
