@@ -186,12 +186,8 @@ def klipper_snippet(needs: FirmwareNeeds, profile=None) -> str:
     lim = profile.limits if profile is not None else None
     if lim is not None:
         for name, have in (("max_velocity", lim.max_velocity_mm_s), ("max_accel", lim.max_accel_mm_s2),
-                           ("max_z_velocity", lim.max_z_velocity_mm_s), ("max_z_accel", lim.max_z_accel_mm_s2)):
-            if abs(have - getattr(needs, name)) > 1e-9 * max(have, 1.0):
-                lines.append(f"# note: this profile's {name} = {have:g}, but the file was timed for "
-                             f"{getattr(needs, name):g} (compensated with another profile?)")
-    if lim is not None:
-        for name, have in (("instantaneous_corner_velocity", lim.instantaneous_corner_velocity_mm_s),
+                           ("max_z_velocity", lim.max_z_velocity_mm_s), ("max_z_accel", lim.max_z_accel_mm_s2),
+                           ("instantaneous_corner_velocity", lim.instantaneous_corner_velocity_mm_s),
                            ("max_extrude_only_velocity", lim.max_extrude_only_velocity_mm_s),
                            ("max_extrude_only_accel", lim.max_extrude_only_accel_mm_s2)):
             if abs(have - getattr(needs, name)) > 1e-9 * max(have, 1.0):

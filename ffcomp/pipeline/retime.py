@@ -65,10 +65,16 @@ class RetimeResult:
         return self.worst_ms[self.kept] if self.worst_ms else 0.0
 
 
+def _top_feed(d: float, a: float, v0: float = 0.0, v1: float = 0.0) -> float:
+    """The highest speed (mm/s) a move of ``d`` mm entered at ``v0`` and left at ``v1`` reaches at
+    acceleration ``a`` (the triangle's peak): a higher feed does not shorten it."""
+    return math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1))
+
+
 def _trapezoid_time(f: float, d: float, a: float, v0: float = 0.0, v1: float = 0.0) -> float:
     """Duration (s) of a move of ``d`` mm at feed ``f`` (mm/s) and acceleration ``a`` (mm/s^2),
     entered at ``v0`` and left at ``v1`` (a triangle where ``f`` is beyond its reach)."""
-    f = max(min(f, math.sqrt(a * d + 0.5 * (v0 * v0 + v1 * v1))), max(v0, v1, 1e-9))
+    f = max(min(f, _top_feed(d, a, v0, v1)), max(v0, v1, 1e-9))
     v0, v1 = min(v0, f), min(v1, f)
     return (f - v0) / a + (f - v1) / a + (d - (2.0 * f * f - v0 * v0 - v1 * v1) / (2.0 * a)) / f
 
@@ -85,7 +91,7 @@ def _extrude_only_feed(f_mm_s: float, d_mm: float, a_mm_s2: float, dT_s: float, 
 
     t0 = T(f_mm_s)
     want = t0 + dT_s
-    lo, hi = 1e-3, max(min(math.sqrt(a_mm_s2 * d_mm + 0.5 * (v0 * v0 + v1 * v1)), vmax_mm_s), 1e-3)
+    lo, hi = 1e-3, max(min(_top_feed(d_mm, a_mm_s2, v0, v1), vmax_mm_s), 1e-3)
     if want >= T(lo):
         f = lo
     elif want <= T(hi):
@@ -201,7 +207,7 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
                 v0, v1, acc = float(other[i][4]), float(other[i][5]), float(other[i][6]) or e_accel
                 fn, _ = _extrude_only_feed(f, d, acc, dT, e_vmax, v0, v1)
                 sec = _secant_feed(f, float(odur[i]), None if hist is None else hist.get(n), dT,
-                                   min(math.sqrt(acc * d + 0.5 * (v0 * v0 + v1 * v1)), e_vmax))
+                                   min(_top_feed(d, acc, v0, v1), e_vmax))
                 if sec is not None:
                     fn = sec
                 # the slicer's retraction speed changes by at most EXTRUDE_FEED_RANGE
