@@ -206,3 +206,29 @@ def test_firmware_config_prints_the_section(profile):
     snip = klipper_snippet(needs, profile.with_(firmware_retraction=FR))
     assert "[firmware_retraction]\nretract_length: 0.8\nretract_speed: 35\nunretract_extra_length: 0.05\n" \
            "unretract_speed: 25" in snip
+
+
+@pytest.mark.parametrize("which", ["default", "other"])
+def test_as_stops_the_command_stands_still_when_the_firmware_runs_them(tmp_path, profile, which):
+    """Without [firmware_retraction] G10/G11 are stops: the stream ends at rest and the next starts
+    from rest.  The stop's line is written where the command stands still (after the rest that
+    ends the stream before, before the next stream's pre-roll), and the repair of the z-hop after
+    the G10 stays in its own stream: it reached back into the rest before and moved the command by
+    up to 16 um in its last 40 ms, so the firmware's flush at the G10 slowed that segment (0.13 ms,
+    kept for the rest of the file) and the lift ran early (other_delta: -0.47 ms, 50 um)."""
+    prof = profile if which == "default" else load_profile(OTHER)
+    src = tmp_path / "stops.gcode"
+    src.write_text("\n".join(["G28", "G90", "M83", "G1 Z0.25 F3000", "G1 X20 Y0 F6000", "G1 X30 Y10 E0.5 F1500",
+                              "G10", "G1 Z.65 F15000", "G1 X-18.5 Y28.5", "G1 Z.25", "G11",
+                              "G1 X-18.3 Y29.3 E.04 F1500", "G1 X-10 Y29.3 E.4"]) + "\n")
+    s = compensate_file(str(src), str(tmp_path / "out.gcode"), prof, CompensateOptions(predict=False))
+    assert s.commands_stopped == 2
+    out = (tmp_path / "out.gcode").read_text().splitlines()
+    for i in [i for i, ln in enumerate(out) if ln in ("G10", "G11")]:
+        j = i - 1
+        while out[j].startswith(";"):
+            j -= 1
+        w = out[j].split()
+        assert w[0] == "G4" or (w[0] == "G1" and float(w[-1][1:]) < 6.0), (out[i], out[j])  # at rest
+    assert abs(s.self_check_drift_ms) <= 0.3, s.self_check_drift_ms
+    assert s.self_check_abs_max_um <= 10.0, s.self_check_abs_max_um

@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, field
 from ..compensate.inverse import InverseConfig
 from ..compensate.pin_repair import RepairConfig
 
-__all__ = ["CompensateOptions", "CompensationSummary", "Z_MODES", "REST_MOVE", "JUMP_M", "PIECE_START_FEED_MM_MIN"]
+__all__ = ["CompensateOptions", "CompensationSummary", "Z_MODES", "REST_MOVE", "REST_PRE", "JUMP_M",
+           "PIECE_START_FEED_MM_MIN"]
 
 #: the z modes (see :class:`CompensateOptions`)
 Z_MODES = ("keep", "hold", "auto")
@@ -17,6 +18,12 @@ Z_MODES = ("keep", "hold", "auto")
 #: machine stands while the command pre-actuates the first move or settles after the last, so these
 #: samples are motion of their own, never part of an extruder-only move or dwell)
 REST_MOVE = -1
+#: move index of the rest samples before a stream (its pre-roll): a run of their own, apart from the
+#: rest after the stream before, so a stop's line (G10 planned as a stop, M600, M109, an unknown
+#: macro...) is written between the two rests, where the command stands still, not into the
+#: pre-roll's motion (there the firmware's flush slowed the segment before it: 0.13 ms each time,
+#: a lateness the writer never saw and kept for the rest of the file)
+REST_PRE = -2
 
 #: a carriage jump larger than this between two samples is a homing (the stream restarts), m
 JUMP_M = 2e-3

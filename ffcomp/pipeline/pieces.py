@@ -90,7 +90,7 @@ class _PieceState:
 
     def begin(self, plan, planned, stops: list, fs_hz: float):
         """Skip the moves before the piece's first cut; returns the moves from it on (None: the piece
-        is empty).  ``stops`` gets the times of the stops after the cut."""
+        is empty).  ``stops`` gets the (time, line) of the stops after the cut."""
         self.fs = float(fs_hz)
         hi = self._hi
 
@@ -103,7 +103,7 @@ class _PieceState:
 
         if self.first:
             if hi is not None:
-                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
+                plan.planner.on_stop = lambda t_s, lineno: (stops.append((t_s, lineno)), hi.on_stop(t_s, lineno))
             return planned
         lo = _CutFinder(self.piece.lo_line)
         plan.planner.on_stop = stop_hook(lo)
@@ -116,11 +116,11 @@ class _PieceState:
             if c_hi is not None:  # no cut between the two lines: nothing here
                 self.empty = True
                 return None
-            stops.extend(t for t, _ in lo.stops if t > c[0] + _CUT_EPS_S)
+            stops.extend((t, ln) for t, ln in lo.stops if t > c[0] + _CUT_EPS_S)
             if hi is not None:
-                plan.planner.on_stop = lambda t_s, lineno: (stops.append(t_s), hi.on_stop(t_s, lineno))
+                plan.planner.on_stop = lambda t_s, lineno: (stops.append((t_s, lineno)), hi.on_stop(t_s, lineno))
             else:
-                plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
+                plan.planner.on_stop = lambda t_s, lineno: stops.append((t_s, lineno))
             self._skip_check = True
             return _prepend(mv, planned)
         self.empty = True

@@ -21,6 +21,7 @@ from ..compensate.delta_cap import DeltaCap, cap_breaks, cap_window
 from ..compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters, repair_window
 from ..kinematics import jacobian
 from ..linalg3 import max_abs3
+from .options import REST_PRE
 
 __all__ = ["PinStats", "pin_repaired"]
 
@@ -130,9 +131,16 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
             br = cap_breaks(geom, buf_q[c0:], buf_meta["xyz"][c0:], cap, q_plan=buf_meta["q"][c0:])
             buf_cap[c0 + 1:n - 1] |= br[1:-1]
             cap_upto = n - 1
-        # stream boundaries (homing jumps): windows never cross them
+        # stream boundaries (homing jumps, and the start of every stream's pre-roll: after a stop
+        # the firmware stands still while it runs the stop's command): windows never cross them (a
+        # z-hop's repair after a G10 reached back into the stream before and moved its resting
+        # command by up to 16 um in its last 40 ms, the firmware's flush at the G10 then slowed it)
         qref = buf_meta["q"]
-        jumps = np.nonzero(max_abs3(np.diff(qref, axis=0)) > jump_m)[0] + 1 if n > 1 else []
+        jumps = np.nonzero(max_abs3(np.diff(qref, axis=0)) > jump_m)[0] + 1 if n > 1 else np.zeros(0, int)
+        mi_all = buf_meta.get("move_index")
+        if mi_all is not None and n > 1:
+            pre = mi_all == REST_PRE
+            jumps = np.union1d(jumps, np.nonzero(pre[1:] & ~pre[:-1])[0] + 1)
         bounds = np.r_[0, jumps, n].astype(int)
         # the plan comes to rest between two samples before a pinned run where it stands still (a
         # hold): the last sample before the run is pinned too, to the rest position, so the firmware

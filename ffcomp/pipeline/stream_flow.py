@@ -24,7 +24,7 @@ from ..kinematics import carriage_rates
 from ..linalg3 import max_abs3
 from ..model.lpv import LpvModel
 from .limited_moves import holds
-from .options import JUMP_M, REST_MOVE, CompensateOptions, CompensationSummary
+from .options import JUMP_M, REST_MOVE, REST_PRE, CompensateOptions, CompensationSummary
 
 if TYPE_CHECKING:
     from .pieces import _PieceState
@@ -56,8 +56,8 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
     inv = None
     last_q = None
     last_meta = None
-    stops: list[float] = []  # print times of stops not yet applied to the stream
-    plan.planner.on_stop = lambda t_s, lineno: stops.append(t_s)
+    stops: list[tuple] = []  # (print time, line) of stops not yet applied to the stream
+    plan.planner.on_stop = lambda t_s, lineno: stops.append((t_s, lineno))
     n_xyz = 0
     planned = iter(plan)
     k_start = 0
@@ -104,9 +104,15 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
             jumps = np.concatenate([[0], jumps])
         # stops: the stream ends where the plan comes to rest (the first sample at or after the stop)
         t_end = blk.t_s[-1]
-        here = [t for t in stops if t <= t_end]
-        stops[:] = [t for t in stops if t > t_end]
-        at_stop = np.unique(np.searchsorted(blk.t_s, np.asarray(here, float) - 1e-9)) if here else np.zeros(0, int)
+        here = [s_ for s_ in stops if s_[0] <= t_end]
+        stops[:] = [s_ for s_ in stops if s_[0] > t_end]
+        at_stop = np.searchsorted(blk.t_s, np.asarray([t for t, _ in here], float) - 1e-9) if here else np.zeros(0, int)
+        # the stream after a stop starts with the line after the stop's: its pre-roll is written
+        # after the stop's line (the sample at the stop may still belong to the move before it)
+        stop_line = {}
+        for i_, (_, ln_) in zip(at_stop.tolist(), here):
+            stop_line[i_] = max(stop_line.get(i_, 0), int(ln_) + 1)
+        at_stop = np.unique(at_stop)
         cuts = np.union1d(jumps, at_stop).astype(int)
         for pc in np.split(np.arange(len(q)), cuts):
             if len(pc) == 0:
@@ -123,8 +129,9 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 k = pc[0]
                 n_pre = inv_pre_samples(icfg, dt)
                 fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
-                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_MOVE),
-                          lineno=np.repeat(blk.lineno[k:k + 1], n_pre), k=np.full(n_pre, -1, np.int64))
+                          e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_PRE),
+                          lineno=np.full(n_pre, max(int(blk.lineno[k]), stop_line.get(k, 0))),
+                          k=np.full(n_pre, -1, np.int64))
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             marks = (hold_margins(blk.move_index[sl], moves, prev_mi if pc[0] not in cuts else None)
                      if n_margin else [])
