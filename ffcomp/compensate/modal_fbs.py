@@ -46,25 +46,15 @@ def modal_split(kernel: np.ndarray, rtol: float = 1e-9) -> tuple[np.ndarray, np.
     return Km[0, :, 0].copy(), 0.5 * (Km[1, :, 1] + Km[2, :, 2])
 
 
-class ModalFbs:
-    """A three-tower :class:`~ffcomp.compensate.stream.FbsStream` (same parameters, same
-    ``feed`` / ``finish``) solved in the modes of :func:`modal_split`'s kernels."""
+class ModalWeight:
+    """The coupled problem's Tikhonov weight for a window of ``rows`` samples (``weight(rows)``):
+    ``reg`` times the mean diagonal of its Gram matrix, the same in modal coordinates (a trace)."""
 
-    def __init__(self, k_common: np.ndarray, k_diff: np.ndarray, basis: UniformBasis, window: int, advance: int,
-                 reg: float, row_stride: int = 1):
-        from .stream import FbsStream
-
-        self.kernels = (np.asarray(k_common, float), np.asarray(k_diff, float))
-        self.basis, self.reg, self.rs = basis, reg, row_stride
+    def __init__(self, kernels: tuple, basis: UniformBasis, reg: float, row_stride: int):
+        self.kernels, self.basis, self.reg, self.rs = kernels, basis, reg, row_stride
         self._lams: dict[int, float] = {}
-        self.common = FbsStream(self.kernels[0][None, :, None], basis, window, advance, reg, row_stride,
-                                lam_fn=self.lam)
-        self.diff = FbsStream(self.kernels[1][None, :, None], basis, window, advance, reg, row_stride, channels=2,
-                              lam_fn=self.lam)
 
-    def lam(self, rows: int) -> float:
-        """The coupled problem's Tikhonov weight for a window of ``rows`` samples: ``reg`` times the
-        mean diagonal of its Gram matrix, the same in modal coordinates (a trace)."""
+    def __call__(self, rows: int) -> float:
         hit = self._lams.get(rows)
         if hit is None:
             m = self.basis.m
@@ -76,6 +66,26 @@ class ModalFbs:
                 tr.append(float(np.sum(Ph * Ph)))
             hit = self._lams[rows] = self.reg * max((tr[0] + 2.0 * tr[1]) / (3.0 * nJ), 1e-30)
         return hit
+
+
+class ModalFbs:
+    """A three-tower :class:`~ffcomp.compensate.stream.FbsStream` (same parameters, same
+    ``feed`` / ``finish``) solved in the modes of :func:`modal_split`'s kernels."""
+
+    def __init__(self, k_common: np.ndarray, k_diff: np.ndarray, basis: UniformBasis, window: int, advance: int,
+                 reg: float, row_stride: int = 1):
+        from .stream import FbsStream
+
+        self.kernels = (np.asarray(k_common, float), np.asarray(k_diff, float))
+        self.basis, self.reg, self.rs = basis, reg, row_stride
+        # (a weight of its own, not a bound method: the two streams referring back to this object
+        # made a reference cycle, freed only by the cyclic collector, which the CLI runs rarely; a
+        # file with a stop at every retraction kept every stream's solves, 5 MB each: 1.5 GB)
+        self.lam = ModalWeight(self.kernels, basis, reg, row_stride)
+        self.common = FbsStream(self.kernels[0][None, :, None], basis, window, advance, reg, row_stride,
+                                lam_fn=self.lam)
+        self.diff = FbsStream(self.kernels[1][None, :, None], basis, window, advance, reg, row_stride, channels=2,
+                              lam_fn=self.lam)
 
     def feed(self, target: np.ndarray) -> np.ndarray:
         """Target rows (n, 3) of the three carriages; returns the spline values (m, 3) of the
