@@ -77,7 +77,6 @@ class ModalFbs:
         from .stream import FbsStream
 
         self.kernels = (np.asarray(k_common, float), np.asarray(k_diff, float))
-        self.basis, self.reg, self.rs = basis, reg, row_stride
         # (a weight of its own, not a bound method: the two streams referring back to this object
         # made a reference cycle, freed only by the cyclic collector, which the CLI runs rarely; a
         # file with a stop at every retraction kept every stream's solves, 5 MB each: 1.5 GB)
