@@ -14,6 +14,7 @@ from ffcomp.model.effects.forearm_inertia import mass_correction
 from ffcomp.model.effects.frame_coupling import LAPLACIAN
 
 NAMES = ("belt_span", "tower_scale", "forearm_inertia", "frame_coupling", "drive_delay")
+load_library()  # the registry fills as the effect modules are imported: not only by tests run before
 POSES = np.array([[0, 0, 30], [100, 0, 30], [-70, 60, 130], [0, -100, 200]]) * 1e-3
 
 

@@ -232,3 +232,28 @@ def test_as_stops_the_command_stands_still_when_the_firmware_runs_them(tmp_path,
         assert w[0] == "G4" or (w[0] == "G1" and float(w[-1][1:]) < 6.0), (out[i], out[j])  # at rest
     assert abs(s.self_check_drift_ms) <= 0.3, s.self_check_drift_ms
     assert s.self_check_abs_max_um <= 10.0, s.self_check_abs_max_um
+
+
+@pytest.mark.parametrize("which", ["default", "other"])
+@pytest.mark.parametrize("name", ["lift", "checksums"])
+def test_a_motor_off_that_ends_the_file_is_written_last_on_the_clock(tmp_path, profile, which, name):
+    """An ``M84`` after the last move (a lift, as hand-written end G-code has it; the checksums
+    sample) is a stop whose own samples are the firmware's dwells around it (Klipper's
+    ``DISABLE_STALL_TIME``), written with that line.  The stream after it took the stop's next line
+    for its pre-roll as a ``G10`` does, so the rests went out on both sides of the ``M84``: the
+    self-check measured the file 200 ms off and wrote nothing (default profile), and where it passed
+    (other_delta) the command crept 4 um after the motors were off.  Now nothing follows the ``M84``
+    but the footer."""
+    prof = profile if which == "default" else load_profile(OTHER)
+    if name == "lift":
+        src = tmp_path / "lift.gcode"
+        src.write_text("\n".join(["G28", "G90", "M83", "G1 Z0.2 F3000", "G1 X-10 Y-10 F9000",
+                                  "G1 X10 Y-10 E0.7 F3000", "G1 Z5 F3000", "M84"]) + "\n")
+    else:
+        src = "samples/gcode/checksums.gcode"
+    s = compensate_file(str(src), str(tmp_path / "out.gcode"), prof, CompensateOptions(predict=False))
+    assert abs(s.self_check_drift_ms) <= 0.1, s.self_check_drift_ms
+    out = (tmp_path / "out.gcode").read_text().splitlines()
+    i = max(k for k, ln in enumerate(out) if "M84" in ln and not ln.startswith(";"))
+    after = [ln for ln in out[i + 1:] if ln.strip() and not ln.startswith(";")]
+    assert all(ln.startswith("SET_VELOCITY_LIMIT") for ln in after), after

@@ -44,6 +44,12 @@ AHEAD_ROUNDS = 3
 BEHIND_ROUNDS = 3
 #: segments that share the wait when a stretch starts ahead of the clock
 AHEAD_SPREAD = 24
+#: a fixed run's first segment that ends at least this far ahead of the clock (s) has the free
+#: segment before it wait (:func:`_wait_before_fixed`)
+FIXED_AHEAD_MIN_S = 2e-5
+FIXED_AHEAD_ROUNDS = 2
+#: the share of that lead the segment before the run takes
+FIXED_AHEAD_SHARE = 0.5
 #: rounds of starting a stretch that stays late early instead, and the lateness that calls for it (s)
 ANTICIPATE_ROUNDS = 2
 ANTICIPATE_MIN_S = 1e-4
@@ -296,9 +302,64 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
             best, best_plan = _refine_stretches(plan, dist, vmax, acc, jv, best, best_plan, free, off, D, late0,
                                                 hi, w)
     if free.any():
-        best, best_plan = _take_back(plan, sweeps, fast_, best, best_plan, free, D, late0, clock_weights(dist, D))
+        w = clock_weights(dist, D)
+        best, best_plan = _take_back(plan, sweeps, fast_, best, best_plan, free, D, late0, w)
+        best, best_plan = _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w)
     t, vin, _ = best_plan
     return best, late0 + np.cumsum(t - D), vin
+
+
+def _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w):
+    """A run of segments at fixed feeds (the plan's own speeds where a limit binds: a lift at
+    ``max_z_accel``) that ends its first segment ahead of the clock gets that wait from the free
+    segment just before it.
+
+    The run follows the plan from the plan's corner, but the writer's point there sits on the
+    sample before the corner's time: the first fixed segment covers only the rest of its sample
+    and ends early, and its fixed feed cannot wait.  The whole run then stays ahead until a free
+    segment after it waits it out (a layer change's lift after a printed line, Slic3r's ringing
+    tower on the default profile: 0.23 ms early over a 10 ms lift).  The free segment before the
+    corner takes that time instead, and the free segment after the run gives back the wait it took:
+    the corner comes late by about as much, for one segment (at a corner's slow speed) rather than
+    a whole run at the lift's.  It runs last, on what the joint
+    refinement and the take-back left (they put most such corners right themselves; run before
+    them, it sent a quarter of the Slic3r tower's chains to worse optima, weighted lateness 3.5 ->
+    29 um), and is kept only where the lateness weighted by speed (``w``, :func:`clock_weights`:
+    about the distance it costs) falls.
+    """
+    if free.all() or not free.any():
+        return best, best_plan
+
+    def wcost(t_):
+        return float(np.sum((w * (late0 + np.cumsum(t_ - D))) ** 2))
+
+    best_w = wcost(best_plan[0])
+    free_idx = np.nonzero(free)[0]
+    for _ in range(FIXED_AHEAD_ROUNDS):
+        t_best = best_plan[0]
+        late_end = late0 + np.cumsum(t_best - D)
+        ls = np.concatenate([[late0], late_end[:-1]])
+        # the first segment of each fixed run after a free one, its lateness added on the way
+        s = np.nonzero(~free[1:] & free[:-1])[0] + 1
+        jump = late_end[s] - ls[s]
+        k = s[(jump < -FIXED_AHEAD_MIN_S) & (late_end[s] < -FIXED_AHEAD_MIN_S)]
+        if not k.size:
+            break
+        amount = FIXED_AHEAD_SHARE * np.minimum(-(late_end[k] - ls[k]), -late_end[k])
+        want = t_best.copy()
+        want[k - 1] += amount
+        # the first free segment after the run had waited the run's lead out: no longer
+        after = np.searchsorted(free_idx, k)
+        ok = after < len(free_idx)
+        j = free_idx[after[ok]]
+        want[j] = np.maximum(want[j] - amount[ok], MIN_SHARE * D[j])
+        FC = sweeps(best, fast_(want), SWEEPS // 2)
+        pC = plan(FC)
+        cw = wcost(pC[0])
+        if cw >= best_w:
+            break
+        best, best_plan, best_w = FC, pC, cw
+    return best, best_plan
 
 
 def _gentle_wants(t, D, free, late0):

@@ -128,9 +128,16 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                 inv = StreamingInverse(model, dt, icfg, keep_padding=True)
                 k = pc[0]
                 n_pre = inv_pre_samples(icfg, dt)
+                ln_pre = int(blk.lineno[k])
+                if k in stop_line:
+                    # after the stop's line, unless the stream's own samples carry that line (the
+                    # firmware's dwells around an M84 / M18: the command line is written after them,
+                    # last, and nothing moves after a motor-off)
+                    own = blk.lineno[pc][blk.lineno[pc] >= stop_line[k] - 1]
+                    ln_pre = max(ln_pre, min(stop_line[k], int(own.min()) if own.size else stop_line[k]))
                 fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
                           e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_PRE),
-                          lineno=np.full(n_pre, max(int(blk.lineno[k]), stop_line.get(k, 0))),
+                          lineno=np.full(n_pre, ln_pre),
                           k=np.full(n_pre, -1, np.int64))
             last_meta = (q[pc[-1]], blk.xyz_m[pc[-1]], blk.e_mm[pc[-1]], blk.move_index[pc[-1]], blk.lineno[pc[-1]])
             marks = (hold_margins(blk.move_index[sl], moves, prev_mi if pc[0] not in cuts else None)

@@ -44,14 +44,21 @@ def simulate_steps(plant, t_s: np.ndarray, q_cmd_m: np.ndarray, steps_per_mm: fl
                    substeps: int = 2, shaped: bool = False, origin_m=0.0):
     """Nozzle path (N, 3) on ``t_s`` when the plant executes the steps of ``q_cmd_m`` (N, 3): the
     firmware's staircase (on the lattice through ``origin_m``), or with ``shaped`` the
-    quantisation-aware stream's."""
+    quantisation-aware stream's.  ``q_cmd_m`` (R, N, 3) runs R commands through the plant together
+    (one pass of its integrator, about the cost of one) and returns (R, N, 3)."""
     dt = float(t_s[1] - t_s[0])
-    if shaped:
-        t_f, q_f = shaped_staircase(q_cmd_m, dt, steps_per_mm, upsample)
-    else:
-        t_f, q_f = staircase(q_cmd_m, dt, steps_per_mm, upsample, origin_m)
-    res = plant.simulate(t_f, q_f, hold="zoh", substeps=substeps, check=False)
-    return res.xyz_m[0][::upsample]
+    q = np.asarray(q_cmd_m, float)
+    runs = q[None] if q.ndim == 2 else q
+    q_f = []
+    for r in runs:
+        if shaped:
+            t_f, f = shaped_staircase(r, dt, steps_per_mm, upsample)
+        else:
+            t_f, f = staircase(r, dt, steps_per_mm, upsample, origin_m)
+        q_f.append(f)
+    res = plant.simulate(t_f, np.stack(q_f), hold="zoh", substeps=substeps, check=False)
+    xyz = res.xyz_m[:, ::upsample]
+    return xyz[0] if q.ndim == 2 else xyz
 
 
 def shaped_staircase(q_cmd_m: np.ndarray, dt_s: float, steps_per_mm: float, upsample: int = 10,
