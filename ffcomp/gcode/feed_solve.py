@@ -47,6 +47,7 @@ AHEAD_SPREAD = 24
 #: a fixed run's first segment that ends at least this far ahead of the clock (s) has the free
 #: segment before it wait (:func:`_wait_before_fixed`)
 FIXED_AHEAD_MIN_S = 2e-5
+#: rounds of it (each on what the last left)
 FIXED_AHEAD_ROUNDS = 2
 #: the share of that lead the segment before the run takes
 FIXED_AHEAD_SHARE = 0.5
@@ -311,21 +312,20 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
 
 def _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w):
     """A run of segments at fixed feeds (the plan's own speeds where a limit binds: a lift at
-    ``max_z_accel``) that ends its first segment ahead of the clock gets that wait from the free
-    segment just before it.
+    ``max_z_accel``) that ends its first segment ahead of the clock gets part of that wait from the
+    free segment just before it.
 
     The run follows the plan from the plan's corner, but the writer's point there sits on the
     sample before the corner's time: the first fixed segment covers only the rest of its sample
     and ends early, and its fixed feed cannot wait.  The whole run then stays ahead until a free
     segment after it waits it out (a layer change's lift after a printed line, Slic3r's ringing
-    tower on the default profile: 0.23 ms early over a 10 ms lift).  The free segment before the
-    corner takes that time instead, and the free segment after the run gives back the wait it took:
-    the corner comes late by about as much, for one segment (at a corner's slow speed) rather than
-    a whole run at the lift's.  It runs last, on what the joint
-    refinement and the take-back left (they put most such corners right themselves; run before
-    them, it sent a quarter of the Slic3r tower's chains to worse optima, weighted lateness 3.5 ->
-    29 um), and is kept only where the lateness weighted by speed (``w``, :func:`clock_weights`:
-    about the distance it costs) falls.
+    tower on the default profile: 0.23 ms early over a 10 ms lift, at 32 mm/s).  The free segment
+    before the corner takes :data:`FIXED_AHEAD_SHARE` of the lead and the free segment after the
+    run gives back as much of the wait it took: the corner (slow) comes a little late, the run a
+    little early.  It runs last, on what the joint refinement and the take-back left (they put
+    most such corners right themselves; run before them, the rule sent a quarter of the tower's
+    chains to worse optima), and is kept only where the lateness weighted by speed (``w``,
+    :func:`clock_weights`: about the distance it costs) falls.
     """
     if free.all() or not free.any():
         return best, best_plan

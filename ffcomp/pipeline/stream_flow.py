@@ -133,8 +133,8 @@ def compensated_stream(plan: GcodePlan, moves: dict, profile, model: LpvModel, i
                     # after the stop's line, unless the stream's own samples carry that line (the
                     # firmware's dwells around an M84 / M18: the command line is written after them,
                     # last, and nothing moves after a motor-off)
-                    own = blk.lineno[pc][blk.lineno[pc] >= stop_line[k] - 1]
-                    ln_pre = max(ln_pre, min(stop_line[k], int(own.min()) if own.size else stop_line[k]))
+                    stop_ln = stop_line[k] - 1
+                    ln_pre = max(ln_pre, stop_ln if np.any(blk.lineno[pc] == stop_ln) else stop_ln + 1)
                 fifo.push(q=np.repeat(q[k:k + 1], n_pre, 0), xyz=np.repeat(blk.xyz_m[k:k + 1], n_pre, 0),
                           e=np.repeat(blk.e_mm[k:k + 1], n_pre), move_index=np.full(n_pre, REST_PRE),
                           lineno=np.full(n_pre, ln_pre),
