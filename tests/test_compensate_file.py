@@ -12,6 +12,7 @@ from ffcomp.errors import GcodeError, KinematicsError
 from ffcomp.gcode.planner import GcodePlan
 from ffcomp.pipeline.compensate_flow import compensate_file
 from ffcomp.pipeline.options import CompensateOptions
+from ffcomp.profile import load_profile
 from ffcomp.steps import positions_from_steps, read_ffsteps, read_plain
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples" / "gcode"
@@ -113,8 +114,6 @@ def test_arcs_are_compensated_along_the_firmwares_chords(tmp_path, profile):
 
     from ffcomp.gcode.sampler import concat_blocks, sample_gcode
     from ffcomp.gcode.start import resolve_start
-    from ffcomp.pipeline.options import CompensateOptions
-
     src = tmp_path / "arc.gcode"
     src.write_text("G90\nSET_VELOCITY_LIMIT ACCEL=1000\nG1 X3 Y0 Z5 F600\nG4 P200\n"
                    "G2 X-3 Y0 I-3 J0 F600\nG2 X3 Y0 I3 J0\nG4 P200\n")
@@ -137,8 +136,6 @@ def test_arcs_are_compensated_along_the_firmwares_chords(tmp_path, profile):
 
 
 def test_the_summary_says_what_the_checks_cost(tmp_path, profile):
-    from ffcomp.pipeline.options import CompensateOptions
-
     src = Path(__file__).resolve().parents[1] / "samples" / "gcode" / "stress_square.gcode"
     s = compensate_file(str(src), str(tmp_path / "a.gcode"), profile)
     assert 0 < s.predict_time_s and 0 < s.self_check_time_s
@@ -155,8 +152,6 @@ def test_small_samples_pass_the_self_check_on_the_clock(tmp_path, profile, which
     """Every small sample, as the main job runs it (self-check on, its limits as shipped), on both
     profiles: written, within 0.2 ms of the absolute clock.  (The last round's change at stops put
     ``checksums.gcode`` 200 ms off on the default profile and wrote nothing; no test ran it.)"""
-    from ffcomp.profile import load_profile
-
     prof = profile if which == "default" else load_profile(
         Path(__file__).resolve().parents[1] / "samples" / "profiles" / "other_delta.toml")
     out = tmp_path / "out.gcode"

@@ -974,7 +974,6 @@ def test_a_stretch_left_behind_the_clock_is_taken_back_gently(profile):
     assert np.sum((w * late2) ** 2) < 0.1 * np.sum((w * late) ** 2)
 
 
-
 @pytest.mark.parametrize("rule", [True, False])
 def test_a_fixed_run_that_starts_ahead_has_the_segment_before_it_wait(profile, monkeypatch, rule):
     """A real chain (``tests/data/slic3r_lift_chain.npz``: 120 one-millisecond segments of Slic3r's

@@ -327,7 +327,7 @@ def _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w):
     chains to worse optima), and is kept only where the lateness weighted by speed (``w``,
     :func:`clock_weights`: about the distance it costs) falls.
     """
-    if free.all() or not free.any():
+    if free.all():  # (no fixed run; the caller runs it only where some segment is free)
         return best, best_plan
 
     def wcost(t_):
@@ -342,10 +342,11 @@ def _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w):
         # the first segment of each fixed run after a free one, its lateness added on the way
         s = np.nonzero(~free[1:] & free[:-1])[0] + 1
         jump = late_end[s] - ls[s]
-        k = s[(jump < -FIXED_AHEAD_MIN_S) & (late_end[s] < -FIXED_AHEAD_MIN_S)]
+        sel = (jump < -FIXED_AHEAD_MIN_S) & (late_end[s] < -FIXED_AHEAD_MIN_S)
+        k = s[sel]
         if not k.size:
             break
-        amount = FIXED_AHEAD_SHARE * np.minimum(-(late_end[k] - ls[k]), -late_end[k])
+        amount = FIXED_AHEAD_SHARE * np.minimum(-jump[sel], -late_end[k])
         want = t_best.copy()
         want[k - 1] += amount
         # the first free segment after the run had waited the run's lead out: no longer
