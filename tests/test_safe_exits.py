@@ -115,7 +115,10 @@ def test_signal_exits_honestly_and_leaves_nothing(tmp_path, long_src, command, s
         cmd, wait = base + ["plan", str(src), "--csv", str(old)], None
     rc, err, seen = _start_and_signal(cmd, sig, tmp_path, wait, times=times)
     assert seen, "the signal must arrive while temporary files exist"
-    assert rc == 128 + sig, err  # 130 for Ctrl-C, 143 for SIGTERM: never 0 (a slicer would ship the file)
+    # 130 for Ctrl-C, 143 for SIGTERM: never 0 (a slicer would ship the file).  (Seen once, on two
+    # busy workers: the hook ran to the end and exited 0 after a SIGTERM; not reproduced in 35
+    # reruns: the temporary files it saw are in the message, to tell when the signal came.)
+    assert rc == 128 + sig, (seen, err)
     assert f"interrupted by {signal.Signals(sig).name}" in err and "unchanged" in err
     assert "Traceback" not in err
     assert {p: _digest(p) for p in (src, old)} == before
