@@ -8,6 +8,8 @@
   cleaning up (SIGKILL, power loss): their PID is no longer running on this host.
 * :func:`check_output_path` finds what would make writing an output fail (missing directory,
   read-only file system, no permission, a directory or device named as the file) before any work.
+* :func:`request_stop` records a stop signal (the CLI's handlers call it); :func:`commit` replaces a
+  target with its finished temporary file only if none has arrived.
 """
 
 from __future__ import annotations
@@ -23,16 +25,41 @@ import zlib
 from pathlib import Path
 from typing import IO, Iterator
 
-from .errors import OutputError
+from .errors import Interrupted, OutputError
 
 __all__ = ["atomic_open", "atomic_write_text", "make_temp", "release_temp", "keep_temp", "cleanup_temps",
-           "sweep_stale", "check_output_path", "TEMP_PREFIX"]
+           "sweep_stale", "check_output_path", "commit", "request_stop", "stop_requested", "TEMP_PREFIX"]
 
 #: every temporary file ffcomp creates starts with this
 TEMP_PREFIX = ".ffcomp-"
 _HOST = f"{zlib.crc32(socket.gethostname().encode()):08x}"
 _NAME = re.compile(r"^\.ffcomp-[a-z]+-(?P<host>[0-9a-f]{8})-(?P<pid>\d+)-[0-9a-f]+")
 _LIVE: set[str] = set()
+_STOP: list[int] = []  # the stop signal that arrived, if one did (request_stop)
+
+
+def request_stop(signum: int | None) -> None:
+    """Record that a stop signal ``signum`` arrived (None: forget it, for a new run in the same
+    process).  The CLI's handler raises :class:`~ffcomp.errors.Interrupted` as well, but Python
+    swallows an exception raised while it runs a destructor or a garbage-collector callback
+    ("Exception ignored in ..."): the run would go on and exit 0 after a SIGTERM, and a slicer
+    would ship the file.  :func:`commit` and the CLI's exit check this record."""
+    _STOP.clear()
+    if signum is not None:
+        _STOP.append(int(signum))
+
+
+def stop_requested() -> int | None:
+    """The stop signal recorded by :func:`request_stop`, or None."""
+    return _STOP[0] if _STOP else None
+
+
+def commit(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """``os.replace(tmp, path)``, unless a stop signal has arrived: then
+    :class:`~ffcomp.errors.Interrupted` (the target is left as it was)."""
+    if _STOP:
+        raise Interrupted(_STOP[0])
+    os.replace(tmp, path)
 
 
 def make_temp(directory: str | os.PathLike, kind: str, suffix: str = "") -> tuple[int, str]:
@@ -174,7 +201,7 @@ def atomic_open(path: str | Path, mode: str = "w", encoding: str | None = "utf-8
             os.chmod(tmp, st.st_mode & 0o7777)
         except FileNotFoundError:
             os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
+        commit(tmp, path)
         keep_temp(tmp)
     except BaseException:
         release_temp(tmp)

@@ -102,6 +102,20 @@ def test_a_z_reversal_on_a_fast_travel_is_judged_at_its_own_time(tmp_path, profi
     assert s.self_check_max_um < 10.0, s.self_check_max_um  # 50.0 um before (failed)
 
 
+
+def test_a_z_reversal_into_a_retracting_lift_keeps_the_clock(tmp_path, profile):
+    """A draw of ``bench_random_drift.py`` (default profile): a slow move down to z 5.75, then up
+    while retracting.  The first segments up kept the extrusion of their samples' time (ratios
+    -0.04, -0.35, then the move's -0.27), and Klipper capped each of those junctions while the
+    carriage sped up; the feed solve ran the way down 0.45 ms early to make up for it.  The ratio
+    now changes at the reversal, where the firmware stops anyway."""
+    src = tmp_path / "r.gcode"
+    src.write_text("G90\nM83\nG28\nG1 X7.147 Y4.158 Z5.753 F1664\nG1 Z9.511 E-0.9980 F5245\n"
+                   "G1 Z12.613 E1.1077 F10940\nG1 Z16.093 F13855\n")
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
+                        CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+    assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms  # -0.446 ms before
+
 @st.composite
 def files_with_firmware_retraction(draw):
     """:func:`small_files` with G10/G11 (and now and then SET_RETRACTION) between the moves, paired

@@ -144,6 +144,35 @@ def test_ratio_steps_stay_within_the_extruder_junction_limit():
                                   by_length(e[:m], d[:m], grp[:m], hold[:m]))
 
 
+def test_a_group_that_leaves_a_reversal_takes_its_ratio_at_once():
+    """A z move down to rest, then up while retracting (ratio -0.27 mm/mm): the reference-time
+    extrusion of the first segments up ramps the ratio over several junctions (-0.04, -0.35, then
+    the group's), and Klipper caps each of those junctions at ``icv / |diff_r|`` while the carriage
+    speeds up.  The junction at the reversal itself is one the corner rule already holds at a
+    crawl (``corner_v_mm_s`` ~0): the group takes its even ratio from its first segment there, its
+    total unchanged.  Where the corner rule leaves the junction fast (``inf``), the edge stays."""
+    from ffcomp.gcode.extrusion import by_length
+
+    d = np.r_[np.linspace(0.04, 0.003, 10), 0.0021, 0.0057, np.linspace(0.017, 0.05, 20)]
+    e = np.r_[np.zeros(10), -0.00008, -0.00198, -0.2656 * np.linspace(0.017, 0.05, 20)]
+    grp = np.r_[np.zeros(10, int), np.ones(22, int)]
+    hold = np.zeros(len(d), bool)
+    v = d / 1e-3
+    cv = np.full(len(d), np.inf)
+    cv[10] = 0.05  # the reversal: the corner rule's limit there, mm/s
+    kw = dict(speed_mm_s=v, icv_mm_s=1.0)
+    out = by_length(e, d, grp, hold, corner_v_mm_s=cv, **kw)
+    r = out[10:] / d[10:]
+    assert np.ptp(r) < 1e-12 * abs(r[0])  # one ratio from the reversal on
+    assert out[10:].sum() == pytest.approx(e[10:].sum(), rel=1e-12)
+    np.testing.assert_array_equal(out[:10], e[:10])
+    # without the corner limit (or without it at that junction) the first keeps its own value and
+    # the ratio ramps from there
+    for c in (None, np.full(len(d), np.inf)):
+        kept = by_length(e, d, grp, hold, corner_v_mm_s=c, **kw)
+        assert kept[10] == e[10] and abs(kept[11] / d[11] - r[0]) > 0.3 * abs(r[0])
+
+
 def _corner_chain(print_first: bool, cruise_s: float, lag_s: float = 0.003, ratio: float = 0.2,
                   vc: float = 15.0, a: float = 1e4, dt: float = 1e-3):
     """A compensated command through a 90 degree corner between a travel and a print move at

@@ -80,9 +80,12 @@ _UNCHANGED = "files are replaced only when complete, so the input and any existi
 
 
 def _raise_interrupted(signum, frame):
+    from ..io_atomic import request_stop
+
     # a second signal while unwinding must not cut the clean-up short
     for s in _STOP_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
+    request_stop(signum)  # (kept: an exception raised inside a destructor is swallowed)
     raise Interrupted(signum)
 
 
@@ -122,11 +125,16 @@ def run_app(argv: list[str]) -> None:
       Ctrl-C, 143 for SIGTERM), never 0 (a slicer hook would ship the uncompensated file);
     * any other ``OSError`` (disk full, I/O error): a one-line message naming the file, exit 6.
     """
+    from ..io_atomic import request_stop, stop_requested
+
     global _STOPPING
     _STOPPING = False
+    request_stop(None)
     old = _install_signal_handlers()
     try:
         rv = app(args=argv, prog_name="ffcomp", standalone_mode=False)
+        if stop_requested() is not None:  # a signal whose exception was swallowed: never exit 0 after it
+            raise Interrupted(stop_requested())
         if rv == 130:  # typer turns a KeyboardInterrupt it sees into Exit(130) and *returns* it
             _interrupted("SIGINT", 130)
         if isinstance(rv, int) and rv:

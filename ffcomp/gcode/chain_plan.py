@@ -28,7 +28,7 @@ import numpy as np
 from .junction import klipper_junction_deviation
 from .klipper import KlipperDelta
 
-__all__ = ["ChainLimits", "segment_limits", "extruder_limited", "junction_v2", "plan_chain", "trapezoids"]
+__all__ = ["ChainLimits", "segment_limits", "extruder_limited", "corner_v2", "junction_v2", "plan_chain", "trapezoids"]
 
 
 class ChainLimits:
@@ -116,13 +116,9 @@ def corner_factors(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return ok, r_jd, qt
 
 
-def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.ndarray,
-                delta_v2: np.ndarray) -> np.ndarray:
-    """Corner and extruder limits on v^2 at the start of segments ``1..n-1`` (length ``n - 1``).
-
-    ``unit``: (n, 3) unit directions; ``erat``: (n,) extrusion per mm; ``acc``, ``delta_v2``: each
-    segment's acceleration and ``2 d a``.  Cruise-speed limits are applied by :func:`plan_chain`.
-    """
+def corner_v2(lim: ChainLimits, unit: np.ndarray, acc: np.ndarray, delta_v2: np.ndarray) -> np.ndarray:
+    """The corner rule's limit on v^2 at the start of segments ``1..n-1`` (length ``n - 1``; ``inf``
+    on a straight line): :func:`junction_v2` without the extruder's."""
     ok, r_jd_all, qt_all = corner_factors(unit)
     out = np.full(len(ok), np.inf)
     if ok.any():
@@ -130,6 +126,17 @@ def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.nd
         a1, a0 = acc[1:][ok], acc[:-1][ok]
         d1, d0 = delta_v2[1:][ok], delta_v2[:-1][ok]
         out[ok] = np.minimum.reduce([r_jd * lim.jd * a1, r_jd * lim.jd * a0, d1 * qt, d0 * qt])
+    return out
+
+
+def junction_v2(lim: ChainLimits, unit: np.ndarray, erat: np.ndarray, acc: np.ndarray,
+                delta_v2: np.ndarray) -> np.ndarray:
+    """Corner and extruder limits on v^2 at the start of segments ``1..n-1`` (length ``n - 1``).
+
+    ``unit``: (n, 3) unit directions; ``erat``: (n,) extrusion per mm; ``acc``, ``delta_v2``: each
+    segment's acceleration and ``2 d a``.  Cruise-speed limits are applied by :func:`plan_chain`.
+    """
+    out = corner_v2(lim, unit, acc, delta_v2)
     diff = np.abs(erat[1:] - erat[:-1])
     with np.errstate(divide="ignore"):
         ev2 = np.where(diff > 0, (lim.instant_corner_v / np.where(diff > 0, diff, 1.0)) ** 2, np.inf)

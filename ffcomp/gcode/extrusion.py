@@ -56,7 +56,8 @@ def flow_groups(moves: list, rel_tol: float = 0.01) -> np.ndarray:
 
 def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.ndarray,
               speed_mm_s: np.ndarray | None = None, icv_mm_s: float | None = None,
-              capped: np.ndarray | None = None, e_limits: tuple[float, float] | None = None) -> np.ndarray:
+              capped: np.ndarray | None = None, e_limits: tuple[float, float] | None = None,
+              corner_v_mm_s: np.ndarray | None = None) -> np.ndarray:
     """Each group's extrusion shared among its segments in proportion to their written length.
 
     Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
@@ -83,6 +84,14 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
         ``instantaneous_corner_velocity``: if given, the ratio steps at a group's start are then kept
         within the junction limit (:func:`limit_ratio_steps`)
     capped, e_limits : see :func:`limit_ratio_steps`
+    corner_v_mm_s : (n,) optional
+        The most the firmware's corner rule lets it pass the junction at each segment's start at
+        (mm/s; ``inf`` where it sets no limit).  A group whose first junction is so slow already
+        that its change of ratio costs nothing there (a reversal: the firmware stops) has no edge:
+        its first segments take the group's ratio at once.  Kept at their reference-time
+        extrusion instead, the segments leaving a reversal step their ratio at every junction while
+        they speed up (a z move down, then up while retracting: 0.45 ms early on the way in, as the
+        feed solve anticipated the lateness of the way out).
     """
     de = np.asarray(de, float)
     if not len(de):
@@ -100,6 +109,14 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     rho = np.where(ok_d, de / np.where(ok_d, dist_mm, 1.0), rho_g[gi])
     near = np.abs(rho - rho_g[gi]) <= EDGE_SHARE * np.abs(rho_g[gi])
     # the edge: from a group's first segment up to its first segment near the group's ratio
+    step_ok = np.zeros(n, bool)  # a group's start where its change of ratio costs the firmware nothing
+    if corner_v_mm_s is not None and icv_mm_s is not None and start.any():
+        s_ = np.nonzero(start)[0]
+        step = np.abs(rho_g[gi[s_]] - rho_g[gi[s_ - 1]])
+        cv = np.asarray(corner_v_mm_s, float)[s_]
+        step_ok[s_] = np.isfinite(cv) & (np.where(np.isfinite(cv), cv, 0.0) * step
+                                         <= RATIO_STEP_SHARE * float(icv_mm_s))
+    near |= step_ok  # (the edge of such a group ends before it starts)
     reached = np.maximum.accumulate(np.where(near, np.arange(n), -1))
     first = np.maximum.accumulate(np.where(start, np.arange(n), -1))
     edge = (first >= 0) & (reached < first)
@@ -111,14 +128,15 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
     if speed_mm_s is not None and icv_mm_s is not None:
         out = limit_ratio_steps(out, dist_mm, np.asarray(speed_mm_s, float), g, hold, edge, float(icv_mm_s),
-                                capped=capped, e_limits=e_limits)
+                                capped=capped, e_limits=e_limits, step_ok=step_ok)
     return out
 
 
 def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray, group: np.ndarray,
                       hold: np.ndarray, edge: np.ndarray, icv_mm_s: float,
                       share: float = RATIO_STEP_SHARE, capped: np.ndarray | None = None,
-                      max_shift: float = 0.1, e_limits: tuple[float, float] | None = None) -> np.ndarray:
+                      max_shift: float = 0.1, e_limits: tuple[float, float] | None = None,
+                      step_ok: np.ndarray | None = None) -> np.ndarray:
     """Extrusions whose ratio changes from segment to segment no faster than the firmware's
     junction limit lets the segments keep their speed.
 
@@ -152,6 +170,9 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     capped : (n,) bool, optional
     max_shift : largest relative change of a group's even ratio
     e_limits : (mm/s, mm/s^2), optional
+    step_ok : (n,) bool, optional
+        Segments whose start junction may take any change of ratio (see :func:`by_length`): no
+        limit there, and a ramp starts afresh after it.
     """
     n = len(e)
     if n < 2 or icv_mm_s <= 0:
@@ -160,6 +181,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
     v = np.where(ok, speed_mm_s, 0.0)
     lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)  # junction j | j + 1
+    if step_ok is not None:
+        lim = np.where(np.asarray(step_ok, bool)[1:], np.inf, lim)
     bad = ok[1:] & ok[:-1] & (np.abs(np.diff(r)) > lim * 1.0001)
     if not bad.any():
         return e

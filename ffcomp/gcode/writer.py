@@ -42,7 +42,7 @@ from typing import IO, Iterator, NamedTuple
 import numpy as np
 
 from ..linalg3 import max_abs3
-from .chain_plan import ChainLimits, segment_limits, z_accel_needed
+from .chain_plan import ChainLimits, corner_v2, segment_limits, z_accel_needed
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
@@ -607,7 +607,8 @@ class GcodeWriter:
         capped = np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]
         de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt,
                        icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
-                       e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel))
+                       e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel),
+                       corner_v_mm_s=None if self.chain is None else self._corner_v(Pr[i], Pr[j], dist, Ef[j] - Ef[i]))
         if self.chain is not None and self.place_steps and bool(np.any(groups[1:] != groups[:-1])):
             # each change of ratio on its cheapest junction (a chunk without one has nothing to place)
             de = place_ratio_steps(de, dist, dist / dt, segment_limits(self.chain, Pr[i], Pr[j], de)[1], groups,
@@ -748,6 +749,20 @@ class GcodeWriter:
         st, en = np.array(mv.start_mm[:3], float)[None], np.array(mv.end_mm[:3], float)[None]
         acc = float(segment_limits(self.chain, st, en, np.zeros(1))[1][0])
         return corner_tail(self.dt, k0, a, b, X, mv, on_plan, self.moves.get(mv.index + 1), end, acc)
+
+    def _corner_v(self, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, de: np.ndarray) -> np.ndarray:
+        """The firmware's corner limit (mm/s) at the start of each written segment (``inf`` at the
+        first, on a straight line and next to a hold), from the printed points."""
+        out = np.full(len(dist), np.inf)
+        ok = dist > 1e-9
+        if len(dist) < 2 or not ok.any():
+            return out
+        unit = np.where(ok[:, None], (P1 - P0) / np.where(ok, dist, 1.0)[:, None], 0.0)
+        acc = segment_limits(self.chain, P0, P1, de)[1]
+        v2 = corner_v2(self.chain, unit, acc, 2.0 * dist * acc)
+        both = ok[1:] & ok[:-1]
+        out[1:][both] = np.sqrt(v2[both])
+        return out
 
     def _extrusion(self, ch, de_ref, seg_run, ext_de, ext_runs) -> np.ndarray:
         """Relative extrusion of every segment and extruder-only move of a chunk, in written order.

@@ -33,7 +33,7 @@ from ..gcode.planner import GcodePlan
 from ..gcode.signature import scan_gcode
 from ..gcode.start import resolve_start
 from ..gcode.writer import GcodeWriter
-from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
+from ..io_atomic import check_output_path, commit, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
 from .header import firmware_needs, header_accel, header_lines, limit_warnings, shaper_summary
@@ -210,7 +210,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                 os.chmod(final_tmp, os.stat(out_path).st_mode & 0o7777)
             except FileNotFoundError:
                 os.chmod(final_tmp, 0o644)
-            os.replace(final_tmp, out_path)
+            commit(final_tmp, out_path)
             keep_temp(final_tmp)
             final_tmp = None
     finally:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..compensate.quantise import NoiseShaper, shaped_step_events
 from ..gcode.planner import GcodePlan
-from ..io_atomic import check_output_path, keep_temp, make_temp, release_temp, sweep_stale
+from ..io_atomic import check_output_path, commit, keep_temp, make_temp, release_temp, sweep_stale
 from ..model.lpv import LpvModel
 from ..steps import (
     STEPPERS,
@@ -147,7 +147,7 @@ def steps_file(src: str, out_path: str, profile, *, method: str = "lpv", lenient
                 summ.max_step_error_steps = ffsteps_max_error(tmp, qs, 10 * dt)
         summ.steps = n_steps
         os.chmod(tmp, 0o644)
-        os.replace(tmp, out_path)
+        commit(tmp, out_path)
         keep_temp(tmp)
         tmp = None
     finally:
