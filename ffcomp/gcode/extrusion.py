@@ -85,8 +85,8 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
         within the junction limit (:func:`limit_ratio_steps`)
     capped, e_limits : see :func:`limit_ratio_steps`
     corner_v_mm_s : (n,) optional
-        The most the firmware's corner rule lets it pass the junction at each segment's start at
-        (mm/s; ``inf`` where it sets no limit).  A group whose first junction is so slow already
+        The speed (mm/s) the firmware's corner rule allows at each segment's start (``inf`` where
+        it sets no limit: a straight line, a hold).  A group whose first junction is so slow already
         that its change of ratio costs nothing there (a reversal: the firmware stops) has no edge:
         its first segments take the group's ratio at once.  Kept at their reference-time
         extrusion instead, the segments leaving a reversal step their ratio at every junction while

@@ -46,7 +46,7 @@ _GAP_MAX_S = 0.05
 #: the range of an extruder-only move's feed, as a factor of the written one (the slicer's
 #: retraction speed): what a gap asks beyond it is taken back by the segments around it
 EXTRUDE_FEED_RANGE = (0.7, 1.5)
-#: a segment's lateness below this (s) asks no factor of its own: it is handed on (see _corrections)
+#: a segment's lateness below this (s) asks no factor of its own: it is carried on (see _residues)
 RESIDUE_S = 1e-7
 
 
