@@ -103,6 +103,14 @@ def test_taken_back_returns_what_was_left_over_its_time_constant():
     assert back[200:].sum() == pytest.approx(-0.3e-3, rel=1e-3)
     # the lateness left after k segments decays as exp(-k dt / tau)
     assert 0.6e-3 - back[10:30].sum() == pytest.approx(0.6e-3 * math.exp(-20e-3 / 0.02), rel=1e-6)
+    # segments that do not follow their feed take none: what they would have taken passes on, the
+    # total the same (the worst random file with Marlin: 5.2 -> 3.7 ms off the clock)
+    skip = np.zeros(400, bool)
+    skip[10:15] = True
+    back_s = _taken_back(left, want, 0.02, skip=skip)
+    assert not back_s[skip].any()
+    assert back_s[10:200].sum() == pytest.approx(0.6e-3, rel=1e-3)
+    np.testing.assert_allclose(back_s[15:30], back[10:25], rtol=1e-12)  # the same decay, five later
 
 
 def test_residues_a_segment_leaves_are_carried_to_one_that_takes_them():

@@ -120,10 +120,12 @@ def _secant_feed(f: float, t: float, prev: tuple | None, dT: float, f_top: float
     return float(min(max(f + dT / slope, 0.3 * f), f_top))
 
 
-def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.ndarray | None = None) -> np.ndarray:
+def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.ndarray | None = None,
+                skip: np.ndarray | None = None) -> np.ndarray:
     """How much of the lateness ``left`` before each segment (s; sparse) each segment takes back
     (s): the lateness seen at a segment decays by ``exp(-duration / tau_s)`` across it; none is
-    carried into a segment where ``breaks`` is set (a new clock after a stop)."""
+    carried into a segment where ``breaks`` is set (a new clock after a stop); a segment in ``skip``
+    (one that does not follow its feed) takes none and passes it all on."""
     back = np.zeros(len(left))
     nz = np.nonzero(left)[0]
     carry, k, ptr, n = 0.0, 0, 0, len(left)
@@ -137,6 +139,10 @@ def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.nda
         if breaks is not None and breaks[k]:
             carry = 0.0
         seen = carry + left[k]
+        if skip is not None and skip[k]:
+            carry = seen
+            k += 1
+            continue
         r = math.exp(-want[k] / tau_s)
         back[k] = (1.0 - r) * seen
         carry = r * seen
@@ -260,8 +266,8 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
     ahead[:-1] = 0.5 * left[1:]
     if last_ahead:
         ahead[-2] += last_ahead
-    target = (want - _taken_back(0.5 * left, want, catch_up_s, bnd)
-              - _taken_back(ahead[::-1], want[::-1], catch_up_s, rbnd)[::-1]
+    target = (want - _taken_back(0.5 * left, want, catch_up_s, bnd, lim_mask)
+              - _taken_back(ahead[::-1], want[::-1], catch_up_s, rbnd, lim_mask[::-1])[::-1]
               - _residues(dur, want, lim_mask, line, seg_hist, bnd))
     ok = (want > 1e-6) & (dur > 0) & (np.abs(dur - target) > RESIDUE_S)
     scale = np.clip(np.where(ok, dur / np.where(ok, np.maximum(target, 0.5 * want), 1.0), 1.0), 0.7, 1.5)
