@@ -605,11 +605,13 @@ class GcodeWriter:
             self.stats.micro_holds += int(micro.sum())
         groups = flow_groups([runs[q].move for q in run_ids])[srun]
         capped = np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]
+        ratio_changes = bool(np.any(groups[1:] != groups[:-1]))
         de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt,
                        icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
                        e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel),
-                       corner_v_mm_s=None if self.chain is None else self._corner_v(Pr[i], Pr[j], dist, Ef[j] - Ef[i]))
-        if self.chain is not None and self.place_steps and bool(np.any(groups[1:] != groups[:-1])):
+                       corner_v_mm_s=(self._corner_v(Pr[i], Pr[j], dist, Ef[j] - Ef[i])
+                                      if self.chain is not None and ratio_changes else None))
+        if self.chain is not None and self.place_steps and ratio_changes:
             # each change of ratio on its cheapest junction (a chunk without one has nothing to place)
             de = place_ratio_steps(de, dist, dist / dt, segment_limits(self.chain, Pr[i], Pr[j], de)[1], groups,
                                    hold, self.chain.instant_corner_v, capped=capped)
