@@ -118,7 +118,7 @@ def test_residues_a_segment_leaves_are_carried_to_one_that_takes_them():
     the resolution summed until they exceed it (so that segment's factor changes at all), the part
     of a segment's lateness its last factor did not remove (it answered 60 % of what was asked), never
     by a segment that does not follow its feed, and never across a stop."""
-    from ffcomp.pipeline.retime import RESIDUE_S, _residues
+    from ffcomp.pipeline.retime import RESIDUE_S, _answered, _residues
 
     n = 40
     want = np.full(n, 1e-3)
@@ -128,7 +128,7 @@ def test_residues_a_segment_leaves_are_carried_to_one_that_takes_them():
     lim = np.zeros(n, bool)
     lim[5] = True  # (its own excess is the limited segments' business)
     brk = np.zeros(n, bool)
-    back = _residues(dur, want, lim, line, None, brk)
+    back = _residues(dur, want, lim, _answered(line, dur, None), brk)
     # the carry passes RESIDUE_S after three residues (1.2), at segment 5: limited (its own lateness
     # is not a residue), so segment 6 takes them; the last two (0.8) are never enough
     assert np.count_nonzero(back) == 1 and back[6] == pytest.approx(1.2 * RESIDUE_S)
@@ -137,11 +137,13 @@ def test_residues_a_segment_leaves_are_carried_to_one_that_takes_them():
     dur[20] += 4e-6
     d0 = want[20] + 10e-6
     hist = {21: (d0 / want[20], d0)}
-    back = _residues(dur, want, np.zeros(n, bool), line, hist, brk)
+    answered = _answered(line, dur, hist)
+    assert answered[20] == pytest.approx(0.6) and np.isnan(np.delete(answered, 20)).all()
+    back = _residues(dur, want, np.zeros(n, bool), answered, brk)
     assert np.count_nonzero(back) == 1 and back[21] == pytest.approx(0.4 * 4e-6)
     # a stop right after it: nothing carried over
     brk[21] = True
-    assert not _residues(dur, want, np.zeros(n, bool), line, hist, brk).any()
+    assert not _residues(dur, want, np.zeros(n, bool), answered, brk).any()
 
 
 def test_a_long_real_file_keeps_the_clock_to_its_end(tmp_path):

@@ -150,25 +150,35 @@ def _taken_back(left: np.ndarray, want: np.ndarray, tau_s: float, breaks: np.nda
     return back
 
 
-def _residues(dur: np.ndarray, want: np.ndarray, lim_mask: np.ndarray, line: np.ndarray, seg_hist: dict | None,
+def _answered(line: np.ndarray, dur: np.ndarray, seg_hist: dict | None) -> np.ndarray:
+    """The share of its last factor's change each segment delivered: ``(d0 - dur) / (d0 - d0 / f)``
+    with ``seg_hist[line] = (f, d0)`` (the factor and the duration before it, previous pass); NaN
+    without one, or where the factor asked for no more than :data:`RESIDUE_S`."""
+    out = np.full(len(line), np.nan)
+    if not seg_hist:
+        return out
+    for k, n in enumerate(line.tolist()):
+        h = seg_hist.get(n)
+        if h is not None:
+            asked = h[1] - h[1] / h[0]  # what the factor should have changed (either way)
+            if abs(asked) > RESIDUE_S:
+                out[k] = (h[1] - dur[k]) / asked
+    return out
+
+
+def _residues(dur: np.ndarray, want: np.ndarray, lim_mask: np.ndarray, answered: np.ndarray,
               breaks: np.ndarray) -> np.ndarray:
     """What each segment takes back (s) of the lateness the segments before it leave that their own
     factors do not remove: below the re-timing's resolution (:data:`RESIDUE_S`) no factor is asked
-    for, and a segment that answered its last factor only in part (``seg_hist``: the factor and the
-    duration before it, by line) leaves the rest.  Summed over a file those residues drift the clock
+    for, and a segment that answered its last factor only in part (``answered``, :func:`_answered`)
+    leaves the rest.  Summed over a file those residues drift the clock
     (``cube_cura.gcode`` on other_delta with Marlin: a microsecond or two at each layer's corners,
     +0.35 ms after 11 minutes).  They are carried on, summed, to the next segment that follows its
     factor (not ``lim_mask``) once they exceed the resolution (so its factor changes at all); nothing
     is carried across ``breaks`` (a stop: a new clock)."""
     late_s = dur - want
-    share = (np.abs(late_s) <= RESIDUE_S).astype(float)
-    if seg_hist:
-        for k in np.nonzero(share == 0.0)[0].tolist():
-            h = seg_hist.get(int(line[k]))
-            if h is not None:
-                asked = h[1] - h[1] / h[0]  # what its last factor should have changed
-                if abs(asked) > RESIDUE_S:
-                    share[k] = 1.0 - min(max((h[1] - dur[k]) / asked, 0.0), 1.0)
+    share = np.where(np.abs(late_s) <= RESIDUE_S, 1.0,
+                     np.where(np.isnan(answered), 0.0, 1.0 - np.clip(np.nan_to_num(answered), 0.0, 1.0)))
     hand = np.where(lim_mask, 0.0, share * late_s)
     back = np.zeros(len(late_s))
     carry = 0.0
@@ -208,16 +218,10 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
     left = np.zeros(len(line))  # lateness a gap leaves for the segments after it, s (within a stream)
     lim_mask = np.zeros(len(line), bool)
     last_ahead = 0.0
+    answered = _answered(line, dur, seg_hist)
     if seg_hist is not None and limited is not None:
-        if seg_hist:
-            for k, n in enumerate(line.tolist()):
-                h = seg_hist.get(n)
-                if h is None or n in limited:
-                    continue
-                sc, d0 = h
-                asked = d0 - d0 / sc  # what the factor should have changed (either way)
-                if abs(asked) > 1e-7 and (d0 - dur[k]) / asked < 0.3:
-                    limited.add(n)
+        with np.errstate(invalid="ignore"):
+            limited.update(line[answered < 0.3].tolist())
         if limited:
             lim_mask = np.fromiter((n in limited for n in line.tolist()), bool, len(line))
             excess = np.where(lim_mask, dur - want, 0.0)
@@ -268,7 +272,7 @@ def _corrections(rows: list, other: list, lines_f: dict, e_accel: float, e_vmax:
         ahead[-2] += last_ahead
     target = (want - _taken_back(0.5 * left, want, catch_up_s, bnd, lim_mask)
               - _taken_back(ahead[::-1], want[::-1], catch_up_s, rbnd, lim_mask[::-1])[::-1]
-              - _residues(dur, want, lim_mask, line, seg_hist, bnd))
+              - _residues(dur, want, lim_mask, answered, bnd))
     ok = (want > 1e-6) & (dur > 0) & (np.abs(dur - target) > RESIDUE_S)
     scale = np.clip(np.where(ok, dur / np.where(ok, np.maximum(target, 0.5 * want), 1.0), 1.0), 0.7, 1.5)
     ok &= ~lim_mask
