@@ -136,6 +136,13 @@ def extrude_only_time(de: np.ndarray, v: np.ndarray, accel: float) -> np.ndarray
     return L / v + v / accel
 
 
+def _lateness(t: np.ndarray, D: np.ndarray, late0: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lateness (s) on the absolute clock at each segment's end and at its start, for planned
+    durations ``t``, intended ``D`` and ``late0`` on entry."""
+    at_end = late0 + np.cumsum(t - D)
+    return at_end, np.concatenate([[late0], at_end[:-1]])
+
+
 def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_open, F0):
     """Feeds of one chain (segments not free keep ``F0``); returns feeds, the lateness at each
     segment end and the entry speeds.
@@ -221,8 +228,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     # starts ahead waits it out, a few rounds
     for _ in range(AHEAD_ROUNDS):
         t_best = best_plan[0]
-        late_end = late0 + np.cumsum(t_best - D)
-        ls = np.concatenate([[late0], late_end[:-1]])
+        late_end, ls = _lateness(t_best, D, late0)
         ahead = free & (ls < -1e-5)
         first = ahead & ~np.concatenate(([False], ahead[:-1]))
         if not first.any():
@@ -251,8 +257,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     # stretch each take back a share, the latest stretches first, one at a time
     for _ in range(BEHIND_ROUNDS):
         t_best = best_plan[0]
-        late_end = late0 + np.cumsum(t_best - D)
-        ls = np.concatenate([[late0], late_end[:-1]])
+        late_end, ls = _lateness(t_best, D, late0)
         behind = free & (ls > 1e-5)
         first = np.nonzero(behind & ~np.concatenate(([False], behind[:-1])))[0]
         if not first.size:
@@ -337,8 +342,7 @@ def _wait_before_fixed(plan, sweeps, fast_, best, best_plan, free, D, late0, w):
     free_idx = np.nonzero(free)[0]
     for _ in range(FIXED_AHEAD_ROUNDS):
         t_best = best_plan[0]
-        late_end = late0 + np.cumsum(t_best - D)
-        ls = np.concatenate([[late0], late_end[:-1]])
+        late_end, ls = _lateness(t_best, D, late0)
         # the first segment of each fixed run after a free one, its lateness added on the way
         s = np.nonzero(~free[1:] & free[:-1])[0] + 1
         jump = late_end[s] - ls[s]
