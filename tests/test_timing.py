@@ -831,6 +831,87 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
     assert drift_ms() > 0.3  # the case: +0.42 ms
 
 
+#: a z-hop of the PrusaSlicer plate (``make_samples.py --large``: its lines 44264-44285, retraction,
+#: lift, travel, descent, unretraction and infill, after a header that stands the printer where
+#: they start, at the plate's acceleration: M204 P5000 R5000 T7000)
+HOP = """G90
+M82
+M204 P5000 R5000 T7000
+M204 P3000
+G92 E10.09201
+G1 X-85.799 Y18.443 Z5.1 F12000
+G4 P200
+G1 E9.29201 F2100
+G92 E0
+G1 Z5.3 F12000
+G1 X-85.684 Y40.655
+G1 Z5.1
+G1 E.8 F2100
+M204 P4000
+;TYPE:Internal infill
+;WIDTH:0.45
+G1 F6000
+G1 X-84.124 Y42.215 E.90611
+G1 X-80.488 Y42.215 E1.08097
+G1 X-85.511 Y37.193 E1.42256
+G1 X-85.511 Y33.557 E1.59743
+G1 X-76.853 Y42.215 E2.18631
+G1 X-73.217 Y42.215 E2.36118
+G1 X-85.511 Y29.921 E3.19736
+G1 X-85.511 Y26.286 E3.37222
+G1 X-69.582 Y42.215 E4.45569
+G1 X-65.946 Y42.215 E4.63056
+G1 X-85.511 Y22.65 E5.96132
+G1 X-85.511 Y19.015 E6.13619
+"""
+
+
+@pytest.mark.parametrize("back", [0, 1, 10])
+def test_a_chunk_that_ends_just_before_a_stop_keeps_the_clock(tmp_path, monkeypatch, back):
+    """The writer times a chunk's open chain as if it went on; where the plan came to rest just
+    after a chunk's end (the plate's z-hop descent: its 6 ms segment ended 0.22 ms late, one 5 um
+    segment left after the cut to take its braking back), the clock slipped.  The writer now holds
+    the last ``writer.CARRY_REST_SAMPLES`` samples back there.  The pipeline's chunks are cut here
+    ``back`` samples before the descent's end (a wrapper of ``GcodeWriter.feed``): the output keeps
+    the clock of the uncut run (-0.043 ms), where without the carry the cut at the end left
+    +0.176 ms (and 10 samples before it -0.048 ms)."""
+    from ffcomp.gcode import writer
+    from ffcomp.gcode.planner import GcodePlan
+    from ffcomp.profile import default_profile
+
+    src = tmp_path / "hop.gcode"
+    src.write_text(HOP)
+    prof = default_profile()
+    descent = next(m for m in GcodePlan(str(src), prof) if m.lineno == 12)
+    cut_at = [None]
+    feed = writer.GcodeWriter.feed
+
+    def cut_feed(self, k0, xyz, e, mi, ln, dense=None, k_plan=None, plan_mm=None, t_shift=None):
+        c = np.nonzero(k_plan == cut_at[0])[0] if k_plan is not None and cut_at[0] is not None else []
+        if len(c) and c[0] > 0:
+            c = int(c[0])
+            part = [(k0, slice(0, c)), (k0 + c, slice(c, None))]
+            for k, s in part:
+                feed(self, k, xyz[s], e[s], mi[s], ln[s], *(None if x is None else x[s]
+                                                            for x in (dense, k_plan, plan_mm, t_shift)))
+            return None
+        return feed(self, k0, xyz, e, mi, ln, dense, k_plan, plan_mm, t_shift)
+
+    monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
+
+    def drift_ms() -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    uncut = drift_ms()
+    cut_at[0] = int(np.floor(descent.t_end_s * 1000)) - back
+    assert abs(drift_ms() - uncut) < 0.005, uncut
+    if back == 0:
+        monkeypatch.setattr(writer, "CARRY_REST_SAMPLES", 0)
+        assert drift_ms() - uncut > 0.1  # the case: +0.176 against -0.043 ms
+
+
 @pytest.mark.parametrize("text, before_ms", [
     # a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s
     ("G90\nM83\nG28\nG1 X-0.146 Y2.773 Z5.060 F6033\nG1 E0.8 F2100\nG1 Z8.987 F10437\nG1 X11.359 Y37.107 F2089\n"

@@ -299,19 +299,48 @@ class GcodeWriter:
         args = (k0, xyz_mm, e_mm, move_index, lineno, dense, k_plan, plan_mm, t_shift)
         if self._carry is not None:
             args, self._carry = _joined(self._carry, args), None
-        # a run that starts within the chunk's last few samples waits for the next chunk: how it
-        # leaves a corner (plan_clock.corner_lead) depends on the samples after it (a layer change's
-        # lift that began 2 samples before a chunk's end kept a 1.4 um first segment: 0.42 ms late)
-        mi = args[3]
-        if len(mi):
-            first = len(mi) - int(np.argmax(mi[::-1] != mi[-1])) if np.any(mi != mi[-1]) else 0
-            if 1 < first and len(mi) - first < CARRY_SAMPLES:
-                # with the run before's last sample: how that run ends (plan_clock.rest_end) depends
-                # on the first sample after it
-                first -= 1
-                self._carry = (args[0] + first,) + tuple(None if x is None else x[first:] for x in args[1:])
-                args = (args[0],) + tuple(None if x is None else x[:first] for x in args[1:])
+        cut = self._carry_from(args)
+        if cut < len(args[3]):
+            self._carry = (args[0] + cut,) + tuple(None if x is None else x[cut:] for x in args[1:])
+            args = (args[0],) + tuple(None if x is None else x[:cut] for x in args[1:])
         self._feed(*args)
+
+    def _carry_from(self, args: tuple) -> int:
+        """The first sample of a chunk (``args``: :meth:`feed`'s) held back for the next one (its
+        length: none).
+
+        * A run that starts within the chunk's last :data:`CARRY_SAMPLES` samples waits, with the
+          run before's last sample: how it leaves a corner (``plan_clock.corner_lead``) depends on
+          the samples after it (a layer change's lift that began 2 samples before a chunk's end
+          kept a 1.4 um first segment: 0.42 ms late), and how the run before ends
+          (``plan_clock.rest_end``) on the first sample after that.
+        * Where the plan then comes to rest within :data:`CARRY_REST_SAMPLES` samples after the last
+          sample written, that many more samples wait, so that the segments before the stop are
+          timed knowing it (and the rule above holds at the new cut).
+        """
+        mi = args[3]
+        n = len(mi)
+        cut = _run_start_cut(mi, n)
+        if cut > 0 and self._rest_ahead(args, cut - 1):
+            cut = max(cut - CARRY_REST_SAMPLES, 0)
+            if cut > 0 and mi[cut] != mi[cut - 1]:
+                cut -= 1  # (not right after a run's last sample: see rest_end above)
+            cut = _run_start_cut(mi, cut)
+        return cut
+
+    def _rest_ahead(self, args: tuple, i: int) -> bool:
+        """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
+        ``i`` of a chunk (``args``: :meth:`feed`'s), while that sample's move moves."""
+        k_plan = args[6]
+        if k_plan is None or k_plan[i] < 0:
+            return False
+        horizon_s = (int(k_plan[i]) + CARRY_REST_SAMPLES) * self.dt
+        mv = self.moves.get(int(args[3][i]))
+        while mv is not None and mv.kind == MOVE and mv.t_start_s < horizon_s:
+            if mv.end_v_mm_s <= REST_V_MM_S:
+                return mv.t_end_s < horizon_s
+            mv = self.moves.get(mv.index + 1)
+        return False
 
     def flush_samples(self) -> None:
         """Write the samples :meth:`feed` holds back (before a new stream starts, and at the end)."""
@@ -872,6 +901,26 @@ class GcodeWriter:
 #: the chunk's end (:func:`~ffcomp.gcode.plan_clock.corner_lead` needs at least 4 of a run's samples;
 #: on other_delta's sample files, 16 moved other runs' ends across the cut and made new 0.3 ms errors)
 CARRY_SAMPLES = 5
+
+#: :meth:`GcodeWriter.feed` holds back a chunk's last this-many samples when the plan comes to rest
+#: within as many samples after them: the segments written before a chunk's end are timed as if the
+#: chain went on, and a stop just after the cut left them no segments to take their braking back
+#: (the plate's z-hop descent: a 6 ms segment 0.22 ms late, one 5 um segment left to the rest point)
+CARRY_REST_SAMPLES = 16
+#: a planned move that ends slower than this comes to rest, mm/s
+REST_V_MM_S = 1e-6
+
+
+def _run_start_cut(mi: np.ndarray, cut: int) -> int:
+    """``cut`` (the first sample held back), or earlier where the last run before it starts within
+    :data:`CARRY_SAMPLES` samples of it: then that run waits too, with the run before's last
+    sample (:meth:`GcodeWriter._carry_from`)."""
+    head = mi[:cut]
+    if len(head) and np.any(head != head[-1]):
+        first = cut - int(np.argmax(head[::-1] != head[-1]))
+        if 1 < first and cut - first < CARRY_SAMPLES:
+            return first - 1
+    return cut
 
 
 def _joined(a: tuple, b: tuple) -> tuple:
