@@ -334,14 +334,10 @@ class GcodeWriter:
         k_plan = args[6]
         if k_plan is None or k_plan[i] < 0:
             return False
-        t_s = int(k_plan[i]) * self.dt
-        horizon_s = t_s + CARRY_REST_SAMPLES * self.dt
+        horizon_s = (int(k_plan[i]) + CARRY_REST_SAMPLES) * self.dt
         mv = self.moves.get(int(args[3][i]))
-        if mv is None or mv.kind != MOVE:
-            return False
-        slow = max(REST_V_MM_S, SLOW_SHARE * _speed_at(mv, t_s))
         while mv is not None and mv.kind == MOVE and mv.t_start_s < horizon_s:
-            if mv.end_v_mm_s <= slow:
+            if mv.end_v_mm_s <= REST_V_MM_S:
                 return mv.t_end_s < horizon_s
             mv = self.moves.get(mv.index + 1)
         return False
@@ -913,18 +909,6 @@ CARRY_SAMPLES = 5
 CARRY_REST_SAMPLES = 16
 #: a planned move that ends slower than this comes to rest, mm/s
 REST_V_MM_S = 1e-6
-#: :meth:`GcodeWriter.feed` holds back as before a rest where the plan ends a move within the same
-#: horizon slower than this share of its speed at the cut (a corner it brakes for)
-SLOW_SHARE = 0.9
-
-
-def _speed_at(mv: PlannedMove, t_s: float) -> float:
-    """The plan's speed (mm/s) along move ``mv`` at print time ``t_s``."""
-    tau = t_s - mv.t_start_s
-    if tau < mv.accel_t_s:
-        return mv.start_v_mm_s + mv.accel_mm_s2 * max(tau, 0.0)
-    tau -= mv.accel_t_s + mv.cruise_t_s
-    return mv.cruise_v_mm_s if tau < 0.0 else max(mv.cruise_v_mm_s - mv.accel_mm_s2 * tau, 0.0)
 
 
 def _run_start_cut(mi: np.ndarray, cut: int) -> int:
