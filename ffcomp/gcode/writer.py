@@ -306,8 +306,8 @@ class GcodeWriter:
         self._feed(*args)
 
     def _carry_from(self, args: tuple) -> int:
-        """The first sample of a chunk (``args``: :meth:`feed`'s) held back for the next one (its
-        length: none).
+        """Index of the first sample of a chunk (``args``: :meth:`feed`'s) held back for the next
+        one; the chunk's length when none is.
 
         * A run that starts within the chunk's last :data:`CARRY_SAMPLES` samples waits, with the
           run before's last sample: how it leaves a corner (``plan_clock.corner_lead``) depends on
