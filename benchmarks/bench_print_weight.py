@@ -7,7 +7,7 @@ For each file and profile (``other_delta`` is compensated with ``other_delta.tom
 written G-code against the source's plan (what ``ffcomp simulate SRC --compare OUT`` prints) and
 prints the printed lines' lag-aligned / contour RMS (the samples where the plan extrudes: what marks
 the part), the whole file's, and the self-check's drift and clock error.  About 90 s of CPU per
-file, profile and weight (cube_prusa); the defaults reproduce the README's table (*Printed samples
+file, profile and weight (cube_prusa); the defaults reproduce the table of docs/gcode_clock.md (*Printed samples
 weigh twice in the repair*).
 """
 

@@ -94,7 +94,7 @@ def test_a_real_file_on_the_klipper_typical_printer_is_solved_exactly(monkeypatc
     s = compensate_file("samples/gcode/cube_prusa.gcode", str(tmp_path / "o.gcode"),
                         load_profile("samples/profiles/other_delta.toml"))
     assert seen["calls"] > 50 and seen["exact"] >= 0.9 * seen["calls"]
-    # (drift -0.51 ms: the pin repair's weight on printed samples moved it from -0.27, README's
+    # (drift -0.51 ms: the pin repair's weight on printed samples moved it from -0.27, docs/gcode_clock.md's
     # *Printed samples weigh twice in the repair*)
     assert s.self_check_max_um < 10.0 and abs(s.self_check_drift_ms) < 0.6
 
