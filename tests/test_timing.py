@@ -1083,3 +1083,65 @@ def test_a_fixed_run_that_starts_ahead_has_the_segment_before_it_wait(profile, m
     else:  # as the solve left it
         assert run.max() < -1.5e-4
         assert np.abs(w * late).max() > 6.0e-3
+
+
+LIFT = """G90
+M82
+G92 E2404.0
+G1 X29.4 Y-28.821 Z20.05 F15000
+G1 F2400
+G1 X29.4 Y-23.179 E2404.09347
+G1 X29.301 Y-22.699 E2404.11247
+G1 X28.965 Y-22.616 E2404.12804
+G1 Z20.25 F15000
+G1 X28.821 Y-22.975
+G1 F2400
+G1 X28.025 Y-22.975 E2404.155
+G4 P500
+G1 X28.025 Y-18.025 E2404.32255
+"""
+
+
+@pytest.mark.parametrize("before", [0, 2, 4, 5, 7])
+def test_a_chunk_that_ends_on_a_corner_holds_back_the_moves_end(tmp_path, before):
+    """A chunk cut where one planned move turns into the next (a Klipper user's tower on
+    other_delta: the printed line's last sample ended a chunk and its layer change's lift began the
+    next one; the lift's first segment was timed without the line's end, 5 um in 0.73 of its
+    1 ms: -0.28 ms).  Where the move of a chunk's last sample ends in motion, into another move,
+    within ``writer.CARRY_SAMPLES`` samples after it, the writer holds that many samples back, so the
+    corner is written in one chunk (as where the next move starts within that many samples before
+    the cut).  Not before a rest (``CARRY_REST_SAMPLES`` holds more there), nor further away."""
+    from types import SimpleNamespace
+
+    from ffcomp.gcode import writer
+    from ffcomp.gcode.planner import GcodePlan
+
+    src = tmp_path / "lift.gcode"
+    src.write_text(LIFT)
+    moves = {m.index: m for m in GcodePlan(str(src), load_profile(OTHER))}
+    dt = 1e-3
+    fake = SimpleNamespace(moves=moves, dt=dt)
+    for name in ("_corner_ahead", "_rest_ahead"):
+        setattr(fake, name, getattr(writer.GcodeWriter, name).__get__(fake))
+
+    def cut_of(mv) -> int:
+        """The first sample held back of a chunk whose last sample is ``before`` samples before the
+        end of move ``mv`` (its samples from 0.1 s before)."""
+        k_last = int(np.floor(mv.t_end_s / dt)) - before
+        k = np.arange(k_last - 100, k_last + 1)
+        mi = np.array([next(m.index for m in moves.values() if m.t_start_s <= t < m.t_end_s or m.t_end_s == t)
+                       for t in k * dt])
+        args = (0, np.zeros((len(k), 3)), np.zeros(len(k)), mi, np.zeros(len(k), np.int64), None, k, None, None)
+        return len(k) - writer.GcodeWriter._carry_from(fake, args)
+
+    line = next(m for m in moves.values() if m.lineno == 8)  # the printed line into the lift
+    assert moves[line.index + 1].lineno == 9 and line.end_v_mm_s > 1.0  # it turns into the lift at speed
+    held = cut_of(line)
+    if before < writer.CARRY_SAMPLES:
+        assert held >= writer.CARRY_SAMPLES  # the line's last samples wait for the lift's first
+    else:
+        assert held == 0
+    # a printed line that comes to rest (the dwell after it): the rest rule's longer hold, as before
+    into_rest = next(m for m in moves.values() if m.lineno == 12)
+    assert into_rest.end_v_mm_s <= writer.REST_V_MM_S
+    assert cut_of(into_rest) == (writer.CARRY_REST_SAMPLES if before < writer.CARRY_REST_SAMPLES else 0)

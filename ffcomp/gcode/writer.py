@@ -314,6 +314,10 @@ class GcodeWriter:
           the samples after it (a layer change's lift that began 2 samples before a chunk's end
           kept a 1.4 um first segment: 0.42 ms late), and how the run before ends
           (``plan_clock.rest_end``) on the first sample after that.
+        * Where none does but the move of the chunk's last sample turns into the next move within
+          :data:`CARRY_SAMPLES` samples after it, the last :data:`CARRY_SAMPLES` samples wait (the
+          rule above again at the new cut): the corner is written in one chunk (a user's tower
+          on other_delta, cut right at a layer change's lift: -0.28 ms, now on time).
         * Where the plan then comes to rest within :data:`CARRY_REST_SAMPLES` samples after the last
           sample written, that many more samples wait, so that the segments before the stop are
           timed knowing it (and the rule above holds at the new cut).
@@ -321,12 +325,27 @@ class GcodeWriter:
         mi = args[3]
         n = len(mi)
         cut = _run_start_cut(mi, n)
+        if cut == n and n > CARRY_SAMPLES and self._corner_ahead(args, n - 1):
+            cut = _run_start_cut(mi, n - CARRY_SAMPLES)
         if cut > 0 and self._rest_ahead(args, cut - 1):
             cut = max(cut - CARRY_REST_SAMPLES, 0)
             if cut > 0 and mi[cut] != mi[cut - 1]:
                 cut -= 1  # (not right after a run's last sample: see rest_end above)
             cut = _run_start_cut(mi, cut)
         return cut
+
+    def _corner_ahead(self, args: tuple, i: int) -> bool:
+        """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) is in a planned move that ends in
+        motion, into another move, within :data:`CARRY_SAMPLES` samples after it."""
+        k_plan = args[6]
+        if k_plan is None or k_plan[i] < 0:
+            return False
+        mv = self.moves.get(int(args[3][i]))
+        if mv is None or mv.kind != MOVE or mv.end_v_mm_s <= REST_V_MM_S:
+            return False
+        nxt = self.moves.get(mv.index + 1)
+        return (nxt is not None and nxt.kind == MOVE
+                and mv.t_end_s < (int(k_plan[i]) + CARRY_SAMPLES) * self.dt)
 
     def _rest_ahead(self, args: tuple, i: int) -> bool:
         """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
@@ -899,7 +918,8 @@ class GcodeWriter:
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last run when it starts within this many samples of
 #: the chunk's end (:func:`~ffcomp.gcode.plan_clock.corner_lead` needs at least 4 of a run's samples;
-#: on other_delta's sample files, 16 moved other runs' ends across the cut and made new 0.3 ms errors)
+#: on other_delta's sample files, 16 moved other runs' ends across the cut and made new 0.3 ms errors);
+#: and this many of its last samples when the last one's move turns into the next within as many after
 CARRY_SAMPLES = 5
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last this-many samples when the plan comes to rest
