@@ -334,27 +334,29 @@ class GcodeWriter:
             cut = _run_start_cut(mi, cut)
         return cut
 
+    def _planned_at(self, args: tuple, i: int) -> tuple:
+        """``(move, k)``: the planned move of sample ``i`` of a chunk (``args``: :meth:`feed`'s) and
+        the sample's index on the plan's grid; ``(None, -1)`` for a sample the plan does not have
+        (a stream's added rest) or a move no longer held."""
+        k_plan = args[6]
+        if k_plan is None or k_plan[i] < 0:
+            return None, -1
+        return self.moves.get(int(args[3][i])), int(k_plan[i])
+
     def _corner_ahead(self, args: tuple, i: int) -> bool:
         """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) is in a planned move that ends in
         motion, into another move, within :data:`CARRY_SAMPLES` samples after it."""
-        k_plan = args[6]
-        if k_plan is None or k_plan[i] < 0:
-            return False
-        mv = self.moves.get(int(args[3][i]))
+        mv, k = self._planned_at(args, i)
         if mv is None or mv.kind != MOVE or mv.end_v_mm_s <= REST_V_MM_S:
             return False
         nxt = self.moves.get(mv.index + 1)
-        return (nxt is not None and nxt.kind == MOVE
-                and mv.t_end_s < (int(k_plan[i]) + CARRY_SAMPLES) * self.dt)
+        return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + CARRY_SAMPLES) * self.dt
 
     def _rest_ahead(self, args: tuple, i: int) -> bool:
         """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
         ``i`` of a chunk (``args``: :meth:`feed`'s), while that sample's move moves."""
-        k_plan = args[6]
-        if k_plan is None or k_plan[i] < 0:
-            return False
-        horizon_s = (int(k_plan[i]) + CARRY_REST_SAMPLES) * self.dt
-        mv = self.moves.get(int(args[3][i]))
+        mv, k = self._planned_at(args, i)
+        horizon_s = (k + CARRY_REST_SAMPLES) * self.dt
         while mv is not None and mv.kind == MOVE and mv.t_start_s < horizon_s:
             if mv.end_v_mm_s <= REST_V_MM_S:
                 return mv.t_end_s < horizon_s
