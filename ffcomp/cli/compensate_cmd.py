@@ -47,6 +47,12 @@ def compensate_cmd(
                                                   "move the nozzle during an extruder-only move). 15 keeps "
                                                   "~95 % of the gain on extruded lines at layer changes; the "
                                                   "print takes that much longer per margin. 0: none.")] = 0.0,
+    quiet_z: Annotated[bool, typer.Option("--quiet-z/--no-quiet-z", help="Plan the z moves next to "
+                                          "retractions (layer changes, z-hop lifts and descents) with ramps "
+                                          "one period of the printer's z resonance long, so they leave "
+                                          "almost no ringing (a G-code file cannot compensate them: the "
+                                          "nozzle stands still in the retractions around them). Klipper "
+                                          "only; the print takes a few ms longer per such move.")] = False,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
                                              "compare with the intended commands.")] = True,
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,
@@ -94,6 +100,8 @@ def compensate_cmd(
         raise typer.BadParameter(f"--hold-margin-ms must be between 0 and 1000, got {hold_margin_ms}")
     if hold_margin_ms and fmt != "gcode":
         raise typer.BadParameter("--hold-margin-ms is for G-code output (step streams move during retractions)")
+    if quiet_z and fmt != "gcode":
+        raise typer.BadParameter("--quiet-z is for G-code output (step streams move during retractions)")
     if jobs != 1 and fmt != "gcode":
         raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")
     jobs = resolve_jobs(jobs)
@@ -112,7 +120,7 @@ def compensate_cmd(
                              self_check_tol_um=self_check_tol_um, predict=predict, lenient=lenient,
                              pin_repair=pin_holds, inverse=InverseConfig(method=method), start_mm=start_mm,
                              unknown_policy=unknown_commands, plan_where_limited=plan_where_limited, jobs=jobs,
-                             hold_margin_s=hold_margin_ms * 1e-3)
+                             hold_margin_s=hold_margin_ms * 1e-3, quiet_z=quiet_z)
     show = progress and not json and os.environ.get("CI") != "true"
     if show and err_console.is_terminal:
         with Progress(TextColumn("[bold]{task.description}[/]"), BarColumn(), TextColumn("{task.fields[pct]}"),
@@ -222,6 +230,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "cap_max_change_um": ("  largest change of the command there", "{:.1f} um"),
         "hold_margins": ("rest margins around retractions (--hold-margin-ms)", "{}"),
         "hold_margin_time_s": ("time they add", "{:.2f} s"),
+        "quiet_z_moves": ("z moves planned quiet (--quiet-z)", "{}"),
+        "quiet_z_time_s": ("time they add", "{:.2f} s"),
         "lines_in": ("lines in", "{}"),
         "lines_out": ("lines out", "{}"),
         "segments": ("G1 segments written", "{}"),

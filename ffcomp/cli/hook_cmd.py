@@ -31,6 +31,8 @@ def hook_cmd(
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep or hold (see ffcomp compensate).")] = "keep",
     hold_margin_ms: Annotated[float, typer.Option("--hold-margin-ms", help="Rest (ms) added around retractions "
                                                   "(see ffcomp compensate). 0: none.")] = 0.0,
+    quiet_z: Annotated[bool, typer.Option("--quiet-z/--no-quiet-z", help="Quiet z moves next to retractions "
+                                          "(see ffcomp compensate).")] = False,
     cura_script: Annotated[bool, typer.Option("--cura-script", help="Print the path of the Cura "
                                               "post-processing script and exit.")] = False,
     jobs: JobsOpt = 1,
@@ -52,7 +54,7 @@ def hook_cmd(
     prof = load_profile_opt(profile)
     final = os.environ.get("SLIC3R_PP_OUTPUT_NAME")
     opts = CompensateOptions(method=method, tol_um=tol_um, z_mode=z_mode, inverse=InverseConfig(method=method),
-                             jobs=resolve_jobs(jobs), hold_margin_s=hold_margin_ms * 1e-3)
+                             jobs=resolve_jobs(jobs), hold_margin_s=hold_margin_ms * 1e-3, quiet_z=quiet_z)
     summ = compensate_file(str(gcode), str(gcode), prof, opts)
     name = f" (final file {final})" if final else ""
     reduction = ""

@@ -26,6 +26,9 @@ Modelled (Klipper 0.12 / 2024-2025 sources)
     * ``SET_VELOCITY_LIMIT`` (VELOCITY, ACCEL, SQUARE_CORNER_VELOCITY, MINIMUM_CRUISE_RATIO, and
       ACCEL_TO_DECEL converted to a cruise ratio) and ``M204`` (S; else min(P, T) when both are given;
       otherwise ignored, as Klipper does).  M201 / M203 / M205 are unknown to Klipper and ignored.
+
+Not Klipper's: ``quiet_z_period_s`` (ffcomp's own plan of a source, off by default) slows the ramps
+of the z moves next to extruder-only moves (:func:`quiet_accel`).
 """
 
 from __future__ import annotations
@@ -39,12 +42,37 @@ from .junction import JUNCTION_RULES, klipper_junction_deviation
 from .moves import DWELL, EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .records import FirmwareMove
 
-__all__ = ["KlipperPlanner", "KlipperDelta", "LOOKAHEAD_FLUSH_TIME", "BUFFER_TIME_HIGH", "SLOW_RATIO"]
+__all__ = ["KlipperPlanner", "KlipperDelta", "LOOKAHEAD_FLUSH_TIME", "BUFFER_TIME_HIGH", "SLOW_RATIO", "quiet_accel",
+           "rest_to_rest_s"]
 
 LOOKAHEAD_FLUSH_TIME = 0.250
 BUFFER_TIME_HIGH = 2.0
 SLOW_RATIO = 3.0
 MOTOR_OFF_DWELL_S = 0.1  # DISABLE_STALL_TIME, applied before and after M18/M84
+
+
+def quiet_accel(d_mm: float, v_mm_s: float, period_s: float) -> float:
+    """The acceleration (mm/s^2) at which a move of ``d_mm`` at up to ``v_mm_s`` ramps from rest to
+    its cruise speed, or to its peak on a move too short to cruise, in exactly ``period_s``.
+
+    A constant-acceleration ramp lasting one period of a resonance has a spectral zero at its
+    frequency, so a rest-to-rest move planned at this acceleration leaves no ringing of that mode
+    (of an undamped one exactly, of a lightly damped one almost).
+    """
+    return min(d_mm / period_s ** 2, v_mm_s / period_s)
+
+
+def rest_to_rest_s(d_mm: float, v_mm_s: float, accel_mm_s2: float) -> float:
+    """Duration (s) of a trapezoidal move of ``d_mm`` from rest to rest at up to ``v_mm_s``."""
+    if v_mm_s * v_mm_s >= d_mm * accel_mm_s2:  # a triangle: no cruise
+        return 2.0 * math.sqrt(d_mm / accel_mm_s2)
+    return d_mm / v_mm_s + v_mm_s / accel_mm_s2
+
+
+def _steep(m) -> bool:
+    """A move that travels more in z than in XY (a layer change's z move, a z-hop)."""
+    dx, dy, dz = m.axes_d[0], m.axes_d[1], m.axes_d[2]
+    return dz != 0.0 and dz * dz >= dx * dx + dy * dy
 
 
 class _Move:
@@ -185,6 +213,15 @@ class KlipperPlanner:
     max_extrude_only_distance_mm : float or None
         Klipper's ``max_extrude_only_distance`` (50 mm default); None disables the check.
     start_position_mm : (x, y, z, e)
+    quiet_z_period_s : float or None
+        Not Klipper's: ffcomp's own plan of a source (``CompensateOptions.quiet_z``).  A move that
+        travels more in z than in XY right after or right before an extruder-only move (a layer
+        change's z move, a z-hop's lift and its move down) is planned at the acceleration whose ramp
+        from rest to its cruise speed (or to its peak, on a short move) lasts this long (the period of
+        the printer's z resonance): each ramp's spectrum then has a zero at that frequency, and the
+        move leaves (almost) no ringing.  A G-code file cannot compensate these moves (the nozzle
+        stands still during the holds around them), so the plan itself must not excite the printer.
+        None (the default): Klipper's plan.
 
     Use :meth:`feed` for every record and :meth:`finish` at the end; both return the moves that became
     final, in order.
@@ -193,7 +230,7 @@ class KlipperPlanner:
     name = "klipper"
 
     def __init__(self, profile, *, path: str = "<gcode>", max_extrude_only_distance_mm: float | None = 50.0,
-                 start_position_mm=(0.0, 0.0, 0.0, 0.0)):
+                 start_position_mm=(0.0, 0.0, 0.0, 0.0), quiet_z_period_s: float | None = None):
         lim = profile.limits
         self.path = path
         self.max_velocity = lim.max_velocity_mm_s
@@ -218,6 +255,10 @@ class KlipperPlanner:
         self.out: list[PlannedMove] = []
         self.n_out = 0
         self.ignored_commands = 0
+        self.quiet_z_period_s = quiet_z_period_s
+        self.quiet_moves = 0  # z moves next to a hold planned with quiet ramps (quiet_z_period_s)
+        self.quiet_added_s = 0.0  # the time their ramps add, rest to rest, s
+        self._last_kin = True  # whether the last move created was an XYZ move
         self._limits = {
             "SET_VELOCITY_LIMIT": self._set_velocity_limit,
             "M204": self._m204,
@@ -312,29 +353,53 @@ class KlipperPlanner:
             self._extruder_check_move(m, line)
         self.commanded_pos = [ex, ey, ez, ee]
         q = self.queue
+        if self.quiet_z_period_s is not None:
+            if is_kin:
+                if not self._last_kin and _steep(m):
+                    self._quiet(m)
+            elif q and q[-1].is_kin and self._last_kin and _steep(q[-1]) and self._quiet(q[-1]) and len(q) > 1:
+                self._junction(q[-2], q[-1])  # its junction, with its new acceleration
+            self._last_kin = is_kin
         if not q:
             q.append(m)
             return
         prev = q[-1]
         q.append(m)
         if is_kin and prev.is_kin:
-            # Move.calc_junction: cruise speeds, reachable speed, extruder and corner limits
-            pr = prev.axes_r
-            diff_r = axes_r[3] - pr[3]
-            extruder_v2 = (self.instant_corner_v / abs(diff_r)) ** 2 if diff_r else m.max_cruise_v2
-            max_start_v2 = min(m.max_cruise_v2, prev.max_cruise_v2, prev.next_junction_v2,
-                               prev.max_start_v2 + prev.delta_v2, extruder_v2)
-            junction_cos_theta = -(axes_r[0] * pr[0] + axes_r[1] * pr[1] + axes_r[2] * pr[2])
-            corner = self._corner_v2(junction_cos_theta, m.jd, m.accel, m.delta_v2,
-                                     prev.jd, prev.accel, prev.delta_v2)
-            if corner < max_start_v2:
-                max_start_v2 = corner
-            m.max_start_v2 = max_start_v2
-            reach_v2 = prev.max_smoothed_v2 + prev.smooth_delta_v2
-            m.max_smoothed_v2 = reach_v2 if reach_v2 < max_start_v2 else max_start_v2
+            self._junction(prev, m)
         self.junction_flush -= m.min_move_t
         if self.junction_flush <= 0.0:
             self._process(lazy=True)
+
+    def _junction(self, prev: _Move, m: _Move) -> None:
+        """``Move.calc_junction``: cruise speeds, reachable speed, extruder and corner limits."""
+        if not (m.is_kin and prev.is_kin):
+            return
+        axes_r, pr = m.axes_r, prev.axes_r
+        diff_r = axes_r[3] - pr[3]
+        extruder_v2 = (self.instant_corner_v / abs(diff_r)) ** 2 if diff_r else m.max_cruise_v2
+        max_start_v2 = min(m.max_cruise_v2, prev.max_cruise_v2, prev.next_junction_v2,
+                           prev.max_start_v2 + prev.delta_v2, extruder_v2)
+        junction_cos_theta = -(axes_r[0] * pr[0] + axes_r[1] * pr[1] + axes_r[2] * pr[2])
+        corner = self._corner_v2(junction_cos_theta, m.jd, m.accel, m.delta_v2,
+                                 prev.jd, prev.accel, prev.delta_v2)
+        if corner < max_start_v2:
+            max_start_v2 = corner
+        m.max_start_v2 = max_start_v2
+        reach_v2 = prev.max_smoothed_v2 + prev.smooth_delta_v2
+        m.max_smoothed_v2 = reach_v2 if reach_v2 < max_start_v2 else max_start_v2
+
+    def _quiet(self, m: _Move) -> bool:
+        """Lower ``m``'s acceleration so that its ramp from rest lasts ``quiet_z_period_s``
+        (:func:`quiet_accel`); whether it changed."""
+        v = math.sqrt(m.max_cruise_v2)
+        a = quiet_accel(m.move_d, v, self.quiet_z_period_s)
+        if not a < m.accel:
+            return False
+        self.quiet_moves += 1
+        self.quiet_added_s += rest_to_rest_s(m.move_d, v, a) - rest_to_rest_s(m.move_d, v, m.accel)
+        m.limit_speed(v, a)
+        return True
 
     def _extruder_check_move(self, m: _Move, line) -> None:
         axis_r = m.axes_r[3]

@@ -85,6 +85,9 @@ class KlipperChainPlanner(KlipperPlanner):
     """
 
     def __init__(self, profile, **kw):
+        if kw.get("quiet_z_period_s") is not None:  # (its runs are planned without KlipperPlanner.move)
+            raise ValueError("quiet_z_period_s: not with the vectorised chain planner (a re-plan of written "
+                             "G-code needs Klipper's own plan)")
         super().__init__(profile, **kw)
         self._lim = ChainLimits(profile, self.max_accel, self.square_corner_velocity)
         # the pending chain: arrays of runs ((k, 5) end x, y, z, e and speed; line numbers; raw

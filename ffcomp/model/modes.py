@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .lpv import LpvModel, PoseMatrices, mech_arrays
+from .lpv import LpvModel, PoseMatrices, frequency_response, mech_arrays
 
-__all__ = ["ModalSummary", "modes", "workspace_grid", "DriveMode", "drive_modes"]
+__all__ = ["ModalSummary", "modes", "workspace_grid", "DriveMode", "drive_modes", "z_resonance_hz"]
 
 _AXIS = np.array(["x", "y", "z"])
 
@@ -136,3 +136,18 @@ def workspace_grid(geometry, z_m: float, step_m: float = 0.01) -> np.ndarray:
     X, Y = np.meshgrid(g, g, indexing="xy")
     ok = X**2 + Y**2 <= r**2 + 1e-12
     return np.stack([X[ok], Y[ok], np.full(ok.sum(), z_m)], axis=1)
+
+
+def z_resonance_hz(model: LpvModel, xyz_m=(0.0, 0.0, 0.0), *, f_min_hz: float = 5.0, f_max_hz: float = 500.0,
+                   n: int = 4000) -> float:
+    """The resonance a z move excites most: the frequency (Hz) of the largest peak of the nozzle's
+    z response to a z command, ``|H_zz(f)|`` of the full model (drive pair, coupled mechanics and
+    every effect), at ``xyz_m`` (m, default the bed centre), searched on ``n`` log-spaced
+    frequencies from ``f_min_hz`` to ``f_max_hz`` and refined by a parabola through the peak."""
+    f = np.geomspace(f_min_hz, f_max_hz, n)
+    h = np.abs(np.asarray(frequency_response(model, np.atleast_2d(np.asarray(xyz_m, float)), f))[0, 2, 2])
+    k = int(np.clip(np.argmax(h), 1, n - 2))
+    lf, y = np.log(f[k - 1:k + 2]), h[k - 1:k + 2]
+    den = y[0] - 2 * y[1] + y[2]
+    off = 0.5 * (y[0] - y[2]) / den if den < 0 else 0.0
+    return float(np.exp(lf[1] + off * (lf[2] - lf[1])))

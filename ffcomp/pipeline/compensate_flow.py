@@ -36,7 +36,7 @@ from ..gcode.writer import GcodeWriter
 from ..io_atomic import check_output_path, commit, keep_temp, make_temp, release_temp, sweep_stale
 from ..kinematics import forward, inverse
 from ..model.lpv import LpvModel
-from .header import firmware_needs, header_accel, header_lines, limit_warnings, shaper_summary
+from .header import firmware_needs, header_accel, header_lines, limit_warnings, quiet_z_period_s, shaper_summary
 from .limited_moves import (
     LimitBound,
     ZLimited,
@@ -126,6 +126,10 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                lines_in=total_lines, firmware=profile.limits.planner,
                                start_mm=list(start.position_mm[:3]), homed_first=start.homed_first)
     _check_flavour(src, profile, summ)
+    if opts.quiet_z and profile.limits.planner != "klipper":
+        summ.warnings += 1
+        summ.notes.append(f"quiet z moves (--quiet-z) are planned for Klipper only; the {profile.limits.planner} "
+                          "plan of this file keeps its z moves as they are")
     start_warning = start.warning(src)
     out_dir = os.path.dirname(os.path.abspath(out_path)) if out_path else tempfile.gettempdir()
     summ.stale_temps_removed = len(sweep_stale(out_dir))  # leftovers of runs that were killed
@@ -277,8 +281,10 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     icfg = inverse_config(profile, opts)
     cuts = _PieceState(piece) if piece is not None else None
     moves: dict = {}
+    quiet_s = quiet_z_period_s(profile, opts)
     plan = GcodePlan(src, profile, lenient=opts.lenient, start_position_mm=start.position_mm,
-                     unknown_policy=opts.unknown_policy)
+                     unknown_policy=opts.unknown_policy,
+                     **({} if quiet_s is None else {"quiet_z_period_s": quiet_s}))
     with _open_existing(body_path, "w") as body, _open_existing(qfile, "wb") as qf, \
             _open_existing(segfile, "wb") as sf:
         lines = iter(parse_gcode(src, lenient=True, dialect=plan.firmware,
@@ -446,6 +452,10 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     summ.pin_windows, summ.pinned_samples = pin_stats.windows, pin_stats.pinned_samples
     summ.cap_windows, summ.cap_max_change_um = pin_stats.cap_windows, pin_stats.cap_max_change_m * 1e6
     summ.pin_max_change_um = pin_stats.max_change_m * 1e6
+    if quiet_s is not None:
+        summ.quiet_z_period_s = quiet_s
+        summ.quiet_z_moves = plan.planner.quiet_moves
+        summ.quiet_z_time_s = plan.planner.quiet_added_s
     parser = plan.parser
     return BodyResult(stats=writer.stats, accel=accel, firmware=plan.firmware,
                       parser_warnings=parser.warnings if hasattr(parser, "warnings") else 0,

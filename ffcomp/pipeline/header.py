@@ -9,7 +9,8 @@ from dataclasses import asdict, dataclass
 from .. import __version__
 
 __all__ = ["header_accel", "header_lines", "shaper_lines", "shaper_summary", "SHAPER_OFF", "FirmwareNeeds",
-           "firmware_needs", "klipper_snippet", "read_firmware_needs", "limit_warnings", "NEEDS_TAG"]
+           "firmware_needs", "klipper_snippet", "read_firmware_needs", "limit_warnings", "NEEDS_TAG",
+           "quiet_z_period_s", "settings_hold_margin_s", "settings_quiet_z_period_s"]
 
 #: the header line that carries the firmware values, machine-readable (``key=value`` words)
 NEEDS_TAG = "; ffcomp firmware:"
@@ -257,6 +258,9 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
                 f"degree={opts.inverse.degree} sample_rate={lim.sample_rate_hz:g}Hz")
     if opts.hold_margin_s:
         settings += f" hold_margin={opts.hold_margin_s * 1e3:g}ms"
+    qp = quiet_z_period_s(profile, opts)
+    if qp is not None:
+        settings += f" quiet_z={qp * 1e3:.4f}ms"
     head = [
         f"; ffcomp {__version__}: model-based feedforward vibration compensation (delta)",
         f"; source: {os.path.basename(src)}",
@@ -324,9 +328,8 @@ def header_lines(profile, opts, src: str, accel: float, needs: FirmwareNeeds | N
     return head, foot
 
 
-def settings_hold_margin_s(path, max_lines: int = 40) -> float:
-    """The rest margin (s) an ffcomp output was written with (its ``; settings:`` header line's
-    ``hold_margin=..ms``); 0 for any other file."""
+def _setting_ms(path, key: bytes, max_lines: int = 40) -> float | None:
+    """``key=..ms`` of an ffcomp output's ``; settings:`` header line, in s (None: absent)."""
     import re
 
     with open(path, "rb") as f:
@@ -335,6 +338,30 @@ def settings_hold_margin_s(path, max_lines: int = 40) -> float:
             if not line:
                 break
             if line.startswith(b"; settings:"):
-                m = re.search(rb"hold_margin=([0-9.]+)ms", line)
-                return float(m.group(1)) * 1e-3 if m else 0.0
-    return 0.0
+                m = re.search(rb"\b" + key + rb"=([0-9.]+)ms", line)
+                return float(m.group(1)) * 1e-3 if m else None
+    return None
+
+
+def settings_hold_margin_s(path, max_lines: int = 40) -> float:
+    """The rest margin (s) an ffcomp output was written with (its ``; settings:`` header line's
+    ``hold_margin=..ms``); 0 for any other file."""
+    return _setting_ms(path, b"hold_margin", max_lines) or 0.0
+
+
+def settings_quiet_z_period_s(path, max_lines: int = 40) -> float | None:
+    """The period (s) an ffcomp output's quiet z moves were planned with (``quiet_z=..ms`` in its
+    ``; settings:`` line, :attr:`CompensateOptions.quiet_z`); None for any other file."""
+    return _setting_ms(path, b"quiet_z", max_lines)
+
+
+def quiet_z_period_s(profile, opts) -> float | None:
+    """The period (s) of the printer's z resonance that ``opts.quiet_z`` times the z moves next to
+    holds with (:func:`ffcomp.model.modes.z_resonance_hz` at the bed centre); None when off or the
+    profile's planner is not Klipper's."""
+    if not getattr(opts, "quiet_z", False) or profile.limits.planner != "klipper":
+        return None
+    from ..model.lpv import LpvModel
+    from ..model.modes import z_resonance_hz
+
+    return 1.0 / z_resonance_hz(LpvModel.from_profile(profile))

@@ -99,6 +99,15 @@ class CompensateOptions:
     #: the next move during the unretraction; in this added rest it can (the print takes that much
     #: longer per margin: counted in the summary).  See :mod:`ffcomp.gcode.margins`.
     hold_margin_s: float = 0.0
+    #: plan the z moves next to extruder-only moves (a layer change's z move between retraction and
+    #: unretraction, a z-hop's lift and its move down) with quiet ramps: each ramp from rest lasts one
+    #: period of the printer's z resonance (:func:`ffcomp.model.modes.z_resonance_hz`), so the move
+    #: itself leaves (almost) no ringing.  A G-code file cannot compensate these moves (the nozzle
+    #: stands still in the holds around them, so the command there is the plan); their ringing was
+    #: most of what the written file loses against the exact commands at layer changes.  The print
+    #: takes longer by the slower ramps (counted in the summary).  Klipper only (its planner plans
+    #: the source); see :class:`ffcomp.gcode.klipper.KlipperPlanner`'s ``quiet_z_period_s``.
+    quiet_z: bool = False
     #: passes of the feed re-timing on the firmware's own plan for planners the writer has no exact
     #: chain model of (Marlin; :mod:`ffcomp.pipeline.retime`); 0: none.  Klipper's writer solves its
     #: feeds against an exact copy of Klipper's lookahead and needs none.
@@ -179,6 +188,11 @@ class CompensationSummary:
     #: rest margins added around retractions (``hold_margin_s``): how many, and the time they add, s
     hold_margins: int = 0
     hold_margin_time_s: float = 0.0
+    #: z moves planned with quiet ramps (``quiet_z``), the time their slower ramps add (s, rest to
+    #: rest) and the period they are timed to (s; None: off)
+    quiet_z_moves: int = 0
+    quiet_z_time_s: float = 0.0
+    quiet_z_period_s: float | None = None
     #: what the checks cost: the prediction's and the self-check's time, s (wall time in one
     #: process; with ``--jobs``, summed over the workers)
     predict_time_s: float | None = None

@@ -21,6 +21,7 @@ from ..model.lpv import LpvModel
 from ..sim.metrics import ErrorReport, evaluate_masked, extruding_mask
 from ..sim.plant import DeltaPlant
 from .compensate_flow import CompensationSummary, compensate_file, inv_pre_samples
+from .header import quiet_z_period_s
 
 __all__ = ["OutputCheck", "check_gcode_output"]
 
@@ -91,7 +92,9 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     from ..gcode.start import resolve_start
 
     start = resolve_start(str(src), profile).position_mm  # where the compensation's plan starts
-    ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start))
+    qp = quiet_z_period_s(profile, opts) if opts is not None else None
+    qkw = {} if qp is None else {"quiet_z_period_s": qp}  # (the quiet z moves are part of the intended motion)
+    ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start, **qkw))
     dt = ref.t_s[1] - ref.t_s[0]
     # the printer stands still before the file starts: the G-code output uses that time (pre_s) to
     # pre-actuate the first move, so the comparison starts at rest too
@@ -102,7 +105,7 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     if margin_s > 0:  # the rest the output adds around retractions is part of the intended motion
         from ..gcode.planner import GcodePlan
 
-        moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start)}
+        moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start, **qkw)}
         Xs, qs, es = with_margins((Xs, qs, es), ref.move_index, moves, int(round(margin_s / dt)))
     X = np.vstack([np.repeat(Xs[:1], n_pre, 0), Xs])
     q = np.vstack([np.repeat(qs[:1], n_pre, 0), qs])

@@ -49,7 +49,9 @@ CUT_NOTE = ("--jobs {jobs}: the file was compensated in {pieces} pieces cut wher
 
 _SUMMED = ("restarts", "clamped", "plan_fallback_samples", "pin_windows", "pinned_samples", "hold_margins",
            "hold_margin_time_s", "cap_windows")
-_MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s", "cap_max_change_um")
+# (quiet z moves: each worker plans the file from its start, the last one all of it)
+_MAXED = ("max_correction_um", "pin_max_change_um", "print_time_s", "cap_max_change_um", "quiet_z_moves",
+          "quiet_z_time_s")
 
 
 def piece_lines(total_lines: int, jobs: int, src: str | None = None) -> list[Piece]:

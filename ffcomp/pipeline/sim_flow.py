@@ -214,7 +214,8 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
     compare : path, optional
         Another G-code (e.g. the compensated output) run on the printer and scored against the
         *same* reference; the shorter record is extended at rest.  An ffcomp output written with
-        rest margins around retractions (``--hold-margin-ms``) has them added to the reference too.
+        rest margins around retractions (``--hold-margin-ms``) has them added to the reference too, and
+        one written with quiet z moves (``--quiet-z``) its z moves planned the same way.
     shaper : str, optional
         ``"name@freq_hz"`` (e.g. ``"mzv@62"``): the reference shaped on X and Y as Klipper does.
     shape_z : bool
@@ -222,12 +223,14 @@ def simulate_gcode(profile, path, *, compare=None, shaper: str | None = None, sh
     quantize : bool
         Round commands to whole steps (``limits.steps_per_mm``).
     """
-    from .header import settings_hold_margin_s
+    from .header import settings_hold_margin_s, settings_quiet_z_period_s
 
     # an output written with rest margins around retractions runs on a longer clock: the reference
-    # (and every run derived from it) gets the same rest
+    # (and every run derived from it) gets the same rest; and one written with quiet z moves
+    # (--quiet-z) the same z moves
     margin_s = settings_hold_margin_s(compare) if compare else 0.0
-    ref = load_gcode_trajectory(profile, path, hold_margin_s=margin_s)
+    quiet_s = settings_quiet_z_period_s(compare) if compare and profile.limits.planner == "klipper" else None
+    ref = load_gcode_trajectory(profile, path, hold_margin_s=margin_s, quiet_z_period_s=quiet_s)
     commands: dict[str, np.ndarray] = {"planned": ref.q_m}
     if shaper:
         name, f = shapers.parse_shaper_spec(shaper)

@@ -198,7 +198,8 @@ def pattern(name: str, geom: DeltaGeometry, centre_mm=(0.0, 0.0, 30.0), *, accel
     return Trajectory(f"{name}@({c[0]:g},{c[1]:g},{c[2]:g})", t, xyz, inverse(geom, xyz))
 
 
-def load_gcode_trajectory(profile, path, *, split: bool = True, hold_margin_s: float = 0.0) -> Trajectory:
+def load_gcode_trajectory(profile, path, *, split: bool = True, hold_margin_s: float = 0.0,
+                          quiet_z_period_s: float | None = None) -> Trajectory:
     """Parse, plan and sample a G-code file at the profile's rate (:mod:`ffcomp.gcode`).
 
     The planner executes homing (``G28``) as a jump, which no printer could follow; with
@@ -206,17 +207,20 @@ def load_gcode_trajectory(profile, path, *, split: bool = True, hold_margin_s: f
     at rest on both sides of a homing move, so each piece starts and ends at rest).
     ``hold_margin_s``: rest (s) added where a compensation with that margin adds it
     (:mod:`ffcomp.gcode.margins`), so the file's plan runs on the compensated output's clock.
+    ``quiet_z_period_s``: the z moves next to holds planned with quiet ramps, as a compensation with
+    ``--quiet-z`` plans them (:class:`ffcomp.gcode.klipper.KlipperPlanner`).
     """
     from ..gcode.sampler import concat_blocks, sample_gcode
 
-    blk = concat_blocks(sample_gcode(str(path), profile))
+    qkw = {} if quiet_z_period_s is None else {"quiet_z_period_s": quiet_z_period_s}
+    blk = concat_blocks(sample_gcode(str(path), profile, **qkw))
     xyz, q, e = blk.xyz_m, blk.q_m, blk.e_mm
     n = int(round(hold_margin_s * blk.fs_hz))
     if n > 0:
         from ..gcode.margins import with_margins
         from ..gcode.planner import GcodePlan
 
-        moves = {mv.index: mv for mv in GcodePlan(str(path), profile)}
+        moves = {mv.index: mv for mv in GcodePlan(str(path), profile, **qkw)}
         xyz, q, e = with_margins((xyz, q, e), blk.move_index, moves, n)
     t = blk.t_s if len(q) == len(blk.t_s) else blk.t_s[0] + np.arange(len(q)) / blk.fs_hz
     traj = Trajectory(Path(path).name, t, xyz, q, e)
