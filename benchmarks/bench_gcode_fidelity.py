@@ -146,9 +146,9 @@ def main() -> None:
     ap.add_argument("--no-limit", action="store_true",
                     help="skip the physical-limit columns (the limit's commands cost about 1.5 s of CPU per "
                          "second of motion)")
-    ap.add_argument("--quiet-z", action="store_true",
-                    help="CompensateOptions.quiet_z (the z moves next to retractions planned with quiet ramps; "
-                         "the reference then has the same z moves)")
+    ap.add_argument("--quiet-z", default=None, choices=["0", "1"],
+                    help="CompensateOptions.quiet_z (1, the default on Klipper: the z moves next to retractions "
+                         "planned with quiet ramps, and the reference with them; 0: as the source plans them)")
     ap.add_argument("--tol-um", type=float, default=None,
                     help="CompensateOptions.tol_um (the writer's point placement tolerance, default 5)")
     a = ap.parse_args()
@@ -163,8 +163,8 @@ def main() -> None:
         extra["tol_um"] = a.tol_um
     if a.hold_margin_ms is not None:
         extra["hold_margin_s"] = a.hold_margin_ms * 1e-3
-    if a.quiet_z:
-        extra["quiet_z"] = True
+    if a.quiet_z is not None:
+        extra["quiet_z"] = a.quiet_z == "1"
     if a.pin_holds:
         extra["pin_repair"] = a.pin_holds == "1"
     if a.repair:

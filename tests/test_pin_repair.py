@@ -463,7 +463,9 @@ def test_a_pinned_lift_after_homing_starts_from_a_command_standing_still(tmp_pat
     pinned (it runs into the retraction); the free command before it pre-actuated it, and the
     repair turned that into a dip and rise of the nozzle by 13 um in a few milliseconds at the top
     of the tower, which the firmware ran 0.21 ms late (cube_cura.gcode, default profile).  The
-    plan's standing samples next to the pinned lift are pinned too (``RepairConfig.still_near_steep``)."""
+    plan's standing samples next to the pinned lift are pinned too (``RepairConfig.still_near_steep``).
+    (On the source's own plan: with the quiet z moves the lift, which runs into the retraction, is
+    planned quiet and the case does not arise.)"""
     from ffcomp.compensate.pin_repair import RepairConfig as RC
     from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
 
@@ -474,11 +476,11 @@ def test_a_pinned_lift_after_homing_starts_from_a_command_standing_still(tmp_pat
     def drift_ms(on: bool) -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), default_profile(),
                             CompensateOptions(predict=False, repair=RC(still_near_steep=on), self_check_drift_ms=1e9,
-                                              self_check_tol_um=1e9))
+                                              self_check_tol_um=1e9, quiet_z=False))
         return s.self_check_drift_ms
 
     assert abs(drift_ms(True)) < 0.1  # +0.013 ms
-    assert abs(drift_ms(False)) > 0.15  # the case: +0.214 ms
+    assert abs(drift_ms(False)) > 0.12  # the case: +0.214 ms (-0.142 since the feed solve's hinge)
 
 
 def test_standing_pins_never_reach_a_repaired_cluster(model):

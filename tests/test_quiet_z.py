@@ -125,9 +125,9 @@ def test_quiet_z_moves_with_margins_keep_the_gain_over_the_whole_layered_file(tm
     src = tmp_path / "layers.gcode"
     src.write_text("\n".join(_layers(z_hop=False)) + "\n")
     base = check_gcode_output(prof, src, tmp_path / "margins.gcode", plant_profile=plant,
-                              opts=CompensateOptions(hold_margin_s=0.015, predict=False))
+                              opts=CompensateOptions(hold_margin_s=0.015, quiet_z=False, predict=False))
     chk = check_gcode_output(prof, src, tmp_path / "quiet.gcode", plant_profile=plant,
-                             opts=CompensateOptions(hold_margin_s=0.015, quiet_z=True, predict=False))
+                             opts=CompensateOptions(hold_margin_s=0.015, predict=False))  # (on by default)
     s = chk.summary
     assert s.quiet_z_moves == 1 and base.summary.quiet_z_moves == 0
     assert s.quiet_z_period_s == pytest.approx(1 / z_resonance_hz(LpvModel.from_profile(prof)))
@@ -139,6 +139,8 @@ def test_quiet_z_moves_with_margins_keep_the_gain_over_the_whole_layered_file(tm
 
 
 def test_cli_header_and_simulate_take_quiet_z(tmp_path, capsys, profile):
+    """On by default (Klipper), off with --no-quiet-z; the header says the period and ``simulate
+    --compare`` plans the source's z moves with it."""
     from cli_util import run, run_json
     from test_hold_margins import _layers
 
@@ -147,8 +149,12 @@ def test_cli_header_and_simulate_take_quiet_z(tmp_path, capsys, profile):
 
     src, out = tmp_path / "layers.gcode", tmp_path / "out.gcode"
     src.write_text("\n".join(_layers(z_hop=False)) + "\n")
-    d = run_json(capsys, src, "-o", out, "--quiet-z", "--no-progress")
+    d = run_json(capsys, src, "-o", out, "--no-progress")
     assert d["quiet_z_moves"] == 1 and d["quiet_z_time_s"] > 0.005
+    off = run_json(capsys, src, "-o", tmp_path / "off.gcode", "--no-quiet-z", "--no-progress")
+    assert off["quiet_z_moves"] == 0 and off["quiet_z_period_s"] is None
+    assert "quiet_z=" not in (tmp_path / "off.gcode").read_text()
+    assert off["print_time_s"] == pytest.approx(d["print_time_s"] - d["quiet_z_time_s"], abs=1e-3)
     T = settings_quiet_z_period_s(out)
     assert T == pytest.approx(d["quiet_z_period_s"], rel=1e-5) and settings_quiet_z_period_s(src) is None
     plain = load_gcode_trajectory(profile, src, split=False)
@@ -170,3 +176,59 @@ def test_quiet_z_is_refused_by_the_chain_planner(profile):
     with pytest.raises(ValueError, match="quiet_z_period_s"):
         KlipperChainPlanner(profile, quiet_z_period_s=0.0166)
     assert math.isfinite(quiet_accel(1.0, 10.0, 0.0166))
+
+
+def test_quiet_z_on_marlin_is_off_and_warns_only_when_asked(tmp_path, profile):
+    """Marlin's plan is not ffcomp's Klipper planner: no quiet moves there; asked for explicitly, a
+    counted warning says so."""
+    from test_hold_margins import _layers
+
+    from ffcomp.pipeline.compensate_flow import compensate_file
+
+    src = tmp_path / "layers.gcode"
+    src.write_text("\n".join(_layers(z_hop=False)) + "\n")
+    marlin = _with_planner(profile, "marlin")
+    s0 = compensate_file(str(src), str(tmp_path / "m0.gcode"), marlin, CompensateOptions(predict=False))
+    s1 = compensate_file(str(src), str(tmp_path / "m1.gcode"), marlin, CompensateOptions(predict=False, quiet_z=True))
+    assert s0.quiet_z_moves == s1.quiet_z_moves == 0 and s0.quiet_z_period_s is None
+    assert s1.warnings == s0.warnings + 1 and any("--quiet-z" in n for n in s1.notes)
+
+
+def _with_planner(profile, name):
+    from dataclasses import replace
+
+    return replace(profile, limits=replace(profile.limits, planner=name))
+
+
+def test_the_slow_ends_of_a_quiet_ramp_are_merged_into_its_moving_segments():
+    """Holds (sub-micrometre segments) at the start and the end of a quiet move's run go into the
+    first / last moving segment of that run; other runs' holds stay."""
+    from ffcomp.gcode.holds import merged_ramp_holds
+
+    # two runs: run 0 quiet (hold, hold, move, move, hold), run 1 not quiet (hold, move)
+    i = np.arange(7)
+    j = i + 1
+    srun = np.array([0, 0, 0, 0, 0, 1, 1])
+    hold = np.array([True, True, False, False, True, True, False])
+    ramp = srun == 0
+    ii, jj = merged_ramp_holds(i, j, srun, hold, ramp)
+    assert ii.tolist() == [0, 3, 5, 6] and jj.tolist() == [3, 5, 6, 7]
+    assert merged_ramp_holds(i, j, srun, hold, np.zeros(7, bool)) is None
+    assert merged_ramp_holds(i, j, srun, np.zeros(7, bool), ramp) is None
+
+
+def test_a_quiet_z_hop_keeps_the_clock_where_max_z_accel_is_low(tmp_path):
+    """other_delta (max_z_accel 3000): a z-hop's quiet lift leaves rest slowly (its first samples move
+    the nozzle under a micrometre); written as holds and one quick segment, the firmware needed more
+    than max_z_accel for it (a cube's z-hops ran 0.46 ms late).  The lift's segments keep the clock."""
+    from ffcomp.pipeline.compensate_flow import compensate_file
+    from ffcomp.profile import load_profile
+
+    prof = load_profile(OTHER)
+    lines = HEAD + ["G1 X-20 Y-20 Z0.2 F6000", "G4 P0", "G1 X20 Y-20 E1.5 F6000", "G1 E-0.8 F2100",
+                    "G1 Z0.6 F6000", "G1 X20 Y20 F12000", "G1 Z0.2 F6000", "G1 E0.8 F2100", "G1 X-20 Y20 E1.5 F6000"]
+    src = tmp_path / "hop.gcode"
+    src.write_text("\n".join(lines) + "\n")
+    s = compensate_file(str(src), str(tmp_path / "out.gcode"), prof, CompensateOptions(predict=False))
+    assert s.quiet_z_moves == 2
+    assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms

@@ -1,5 +1,9 @@
 """Timing on the absolute clock: the closed-loop feed solve, the self-check's drift, the header's
-firmware values, and ``simulate --compare`` aligning a pre-rolled output."""
+firmware values, and ``simulate --compare`` aligning a pre-rolled output.
+
+The tests of one writer mechanism at a layer change or a z-hop run on the source's own plan
+(``quiet_z=False``): the quiet z moves (on by default) plan those z moves slower, and most of the
+cases these tests hold do not arise there (``--no-quiet-z`` and Marlin files still meet them)."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -286,7 +290,7 @@ def test_the_file_is_timed_for_the_stated_max_z_accel_exactly(tmp_path):
                   "G1 E-0.8 F2400", f"G1 Z{0.5 + 0.2 * k:.1f} F600", "G1 E0.8 F2400"]
     src, out = tmp_path / "l.gcode", tmp_path / "o.gcode"
     src.write_text("\n".join(lines) + "\n")
-    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False))
+    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False, quiet_z=False))
     assert abs(s.self_check_drift_ms) < 0.2
     needs = read_firmware_needs(str(out))
     assert needs.max_z_accel == prof.limits.max_z_accel_mm_s2
@@ -392,7 +396,7 @@ def test_layer_changes_run_on_the_plan_clock(tmp_path, profile, name):
     prof = profile if name == "default" else load_profile(OTHER)
     src, out = tmp_path / "layers.gcode", tmp_path / "out.gcode"
     src.write_text("\n".join(LAYERS) + "\n")
-    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False))
+    s = compensate_file(str(src), str(out), prof, CompensateOptions(predict=False, quiet_z=False))
     assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms
     lines = out.read_text().splitlines()
     unretracts = [i for i, ln in enumerate(lines) if ln.startswith("G1 E0.8")]
@@ -528,7 +532,7 @@ def test_the_settling_after_a_files_last_z_move_keeps_the_clock(tmp_path, profil
     (checksums, other_delta) late; written as a hold the file keeps 0.2 ms."""
     prof = profile if which == "default" else load_profile(OTHER)
     s = compensate_file(str(ROOT / "samples" / "gcode" / name), str(tmp_path / "o.gcode"), prof,
-                        CompensateOptions(predict=False))
+                        CompensateOptions(predict=False, quiet_z=False))
     assert s.micro_holds >= 1
     assert abs(s.self_check_drift_ms) < 0.2, s.self_check_drift_ms
 
@@ -711,7 +715,8 @@ def test_a_z_hop_travel_meets_its_pinned_move_down_on_the_clock(tmp_path, monkey
 
     def drift_ms(**repair) -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                            CompensateOptions(predict=False, repair=RepairConfig(**repair), self_check_drift_ms=1e9))
+                            CompensateOptions(predict=False, quiet_z=False,
+                                              repair=RepairConfig(**repair), self_check_drift_ms=1e9))
         return s.self_check_drift_ms
 
     # (the repair's weight on printed samples, 2 by default, moves the change into the lift and the
@@ -746,7 +751,8 @@ def test_a_pinned_z_hop_runs_into_its_travel_on_the_clock(tmp_path, monkeypatch)
 
     def drift_ms() -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+                            CompensateOptions(predict=False, quiet_z=False,
+                                              self_check_drift_ms=1e9, self_check_tol_um=1e9))
         return s.self_check_drift_ms
 
     assert abs(drift_ms()) < 0.25
@@ -772,14 +778,14 @@ def test_a_lift_right_after_a_printed_line_is_pinned_on_a_klipper_typical_printe
 
     def drift_ms(on: bool) -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                            CompensateOptions(predict=False, repair=RepairConfig(pin_layer_lifts=on),
+                            CompensateOptions(predict=False, quiet_z=False, repair=RepairConfig(pin_layer_lifts=on),
                                               self_check_drift_ms=1e9, self_check_tol_um=1e9))
         return s.self_check_drift_ms
 
     assert abs(drift_ms(True)) < 0.25  # -0.19 ms
     assert abs(drift_ms(False)) < 0.25  # -0.16 ms: the free corner
     monkeypatch.setattr(GcodeWriter, "_free_corner", lambda self, *a: None)
-    assert abs(drift_ms(False)) > 0.5  # the case: -0.69 ms
+    assert abs(drift_ms(False)) > 0.4  # the case: -0.69 ms (-0.50 since the feed solve's hinge)
 
 
 
@@ -796,7 +802,8 @@ def test_a_stretch_off_the_clock_in_a_long_chain_is_refined_locally(tmp_path, mo
         self_check.TRACE = []
         try:
             s = compensate_file(str(ROOT / "samples" / "gcode" / "cube_prusa.gcode"), str(tmp_path / "o.gcode"),
-                                load_profile(OTHER), CompensateOptions(predict=False, self_check_drift_ms=1e9,
+                                load_profile(OTHER), CompensateOptions(predict=False, quiet_z=False,
+                                                                       self_check_drift_ms=1e9,
                                                                        self_check_tol_um=1e9))
             late = np.concatenate([r[2] for r in self_check.TRACE])
         finally:
@@ -823,7 +830,8 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
 
     def drift_ms() -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), load_profile(OTHER),
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+                            CompensateOptions(predict=False, quiet_z=False,
+                                              self_check_drift_ms=1e9, self_check_tol_um=1e9))
         return abs(s.self_check_drift_ms)
 
     assert drift_ms() < 0.2  # +0.12 ms
@@ -901,7 +909,8 @@ def test_a_chunk_that_ends_just_before_a_stop_keeps_the_clock(tmp_path, monkeypa
 
     def drift_ms() -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+                            CompensateOptions(predict=False, quiet_z=False,
+                                              self_check_drift_ms=1e9, self_check_tol_um=1e9))
         return s.self_check_drift_ms
 
     uncut = drift_ms()
@@ -1145,3 +1154,24 @@ def test_a_chunk_that_ends_on_a_corner_holds_back_the_moves_end(tmp_path, before
     into_rest = next(m for m in moves.values() if m.lineno == 12)
     assert into_rest.end_v_mm_s <= writer.REST_V_MM_S
     assert cut_of(into_rest) == (writer.CARRY_REST_SAMPLES if before < writer.CARRY_REST_SAMPLES else 0)
+
+
+def test_the_hinge_splits_a_stretch_the_limits_cannot_run_in_its_time(tmp_path, monkeypatch):
+    """vase_prusa on other_delta: a layer change's lift (at ``max_z_accel``) turns into its travel,
+    whose first chords need more than the delta cap allows.  Weighted by speed alone the joint solve
+    put most of that lateness at the lift's top, where the nozzle is slow (-0.234 ms); with the hinge
+    (``feed_solve.HINGE_S``) the chain is solved again and the lateness splits (-0.131 ms), while the
+    largest distance from the intended command does not grow."""
+    from ffcomp.profile import load_profile
+
+    def run():
+        s = compensate_file(str(ROOT / "samples" / "gcode" / "vase_prusa.gcode"), str(tmp_path / "o.gcode"),
+                            load_profile(OTHER), CompensateOptions(predict=False, self_check_drift_ms=1e9,
+                                                                   self_check_tol_um=1e9))
+        return s.self_check_drift_ms, s.self_check_abs_max_um
+
+    on, on_um = run()
+    monkeypatch.setattr(fs, "_hinged", lambda plan, F, p, *a: (F, p))
+    off, off_um = run()
+    assert abs(on) < 0.2 and abs(off) > 0.2, (on, off)
+    assert on_um <= 1.1 * off_um, (on_um, off_um)

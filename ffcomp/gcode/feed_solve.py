@@ -77,6 +77,18 @@ REFINE_MIN_MM = 2e-3
 #: sub-chain ``REFINE_MARGIN`` segments longer either side (:func:`_refine_stretches`; 12 left a
 #: lift's ramp on ringing_tower_prusa 0.4 ms late, the speeds at a nearer edge fixed too soon)
 REFINE_PEAK_MM = 2e-3
+#: the refinement's objective also charges every segment end more than ``HINGE_S`` off the clock
+#: for the excess, weighted as ``HINGE_MM_S`` (mm/s; :func:`refine_objective`): a stretch the
+#: limits cannot run in its time (a lift's top turning into its travel on a printer with a low
+#: ``max_z_accel``) then splits its lateness between the ends either side instead of putting
+#: most of it where the nozzle is slow (-0.24 / +0.08 ms at a ringing tower's lift top on
+#: other_delta); a chain whose ends stay within ``HINGE_S`` is solved as before
+HINGE_S = 1.2e-4
+HINGE_MM_S = 2000.0
+#: a whole chain's hinged refinement (:func:`_hinged`) may raise its largest lateness times speed
+#: (about the distance from the intended command, mm) by this factor at most (or to
+#: ``2 REFINE_PEAK_MM``)
+HINGE_COST_GROWTH = 1.25
 REFINE_LOCAL = 24
 REFINE_MARGIN = 48
 #: (25 mm/s since the twenty-first round, 10 before: where the command nearly stands still, a
@@ -301,9 +313,11 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     if REFINE_ITERS and free.any():
         w = clock_weights(dist, D)
         hi = np.minimum(Fmax, vmax)
-        off = np.abs(w * (late0 + np.cumsum(best_plan[0] - D)))
+        late_b = late0 + np.cumsum(best_plan[0] - D)
+        off = np.abs(w * late_b)
         if float(np.sqrt(np.mean(off**2))) > REFINE_MIN_MM:
             best, best_plan = _refine(plan, best, best_plan, free, D, late0, hi, w)
+            best, best_plan = _hinged(plan, best, best_plan, free, D, late0, hi, w)
         elif np.any(off > REFINE_PEAK_MM):
             best, best_plan = _refine_stretches(plan, dist, vmax, acc, jv, best, best_plan, free, off, D, late0,
                                                 hi, w)
@@ -417,6 +431,34 @@ def _take_back(plan, sweeps, fast_, F, p, free, D, late0, w):
     return F, p
 
 
+def refine_objective(w: np.ndarray, r: np.ndarray, hinge: bool = True) -> float:
+    """What the refinement minimises: the squared lateness times speed (``w``: :func:`clock_weights`,
+    mm/s; ``r``: lateness, s) at every segment end, plus (``hinge``) the squared excess over
+    :data:`HINGE_S` weighted as :data:`HINGE_MM_S`."""
+    c = float(np.sum((w * r) ** 2))
+    if hinge:
+        ex = np.maximum(np.abs(r) - HINGE_S, 0.0)
+        c += HINGE_MM_S**2 * float(np.sum(ex**2))
+    return c
+
+
+def _hinged(plan, F, p, free, D, late0, hi, w):
+    """Where a chain's refined feeds ``F`` (plan ``p``) leave a segment end more than :data:`HINGE_S`
+    off the clock, :func:`_refine` again with the hinge; kept where the largest lateness falls and
+    the largest lateness times speed grows by at most :data:`HINGE_COST_GROWTH` (a z travel at
+    100 mm/s on other_delta: refined with the hinge alone its clock error went 3.4 -> 14 um)."""
+    r = late0 + np.cumsum(p[0] - D)
+    peak = float(np.max(np.abs(r)))
+    if peak <= HINGE_S:
+        return F, p
+    Fh, ph = _refine(plan, F, p, free, D, late0, hi, w, hinge=True)
+    rh = late0 + np.cumsum(ph[0] - D)
+    off, offh = float(np.max(np.abs(w * r))), float(np.max(np.abs(w * rh)))
+    if float(np.max(np.abs(rh))) < peak and offh <= max(HINGE_COST_GROWTH * off, 2 * REFINE_PEAK_MM):
+        return Fh, ph
+    return F, p
+
+
 def _refine_stretches(plan, dist, vmax, acc, jv, F, p, free, off, D, late0, hi, w):
     """:func:`_refine` of the free feeds within :data:`REFINE_LOCAL` segments of the segment ends
     more than :data:`REFINE_PEAK_MM` off (``off``: lateness times speed, mm), each such stretch on
@@ -451,27 +493,33 @@ def _refine_stretches(plan, dist, vmax, acc, jv, F, p, free, off, D, late0, hi, 
     return F, p
 
 
-def _refine(plan, F, p, free, D, late0, hi, w):
+def _refine(plan, F, p, free, D, late0, hi, w, hinge: bool = False):
     """Gauss-Newton (Levenberg-Marquardt) on the free feeds' logarithms for the least summed squared
     lateness times speed (``w``, :func:`clock_weights`) at every segment end, from the rounds' feeds
     ``F`` (plan ``p``); returns the best feeds and their plan.  The rounds aim each segment at a
     duration one at a time and keep a round only where the whole chain gains, which can leave long
     stretches a fraction of a millisecond ahead or behind after a corner the limits slow (a z
     reversal at ``max_z_accel``); the joint solve takes them back.  Feeds stay within
-    ``[1e-3, hi]`` (mm/s)."""
+    ``[1e-3, hi]`` (mm/s).  ``hinge``: the objective charges lateness beyond :data:`HINGE_S` too
+    (:func:`refine_objective`; see :func:`_hinged`)."""
     fi = np.nonzero(free)[0]
     F = np.where(free, np.minimum(F, hi), F)  # a feed above the segment's cap changes nothing
     r = late0 + np.cumsum(p[0] - D)
-    cost = float(np.sum((w * r) ** 2))
+    cost = refine_objective(w, r, hinge)
     lam = 1e-3 * float(np.mean(D)) ** 2 * float(np.mean(w**2))
     for _ in range(REFINE_ITERS):
-        solve = _damped_solver(_duration_jacobian(plan, F, p[0], free), w, -w * r)
+        # the hinge where it acts, folded into one weighted row per segment end: w^2 (r + x)^2 +
+        # H^2 (r - L sign r + x)^2 = we^2 (x + r*)^2 + const
+        far = (np.abs(r) > HINGE_S) & hinge
+        we = np.sqrt(w**2 + np.where(far, HINGE_MM_S**2, 0.0))
+        rs = np.where(far, (w**2 * r + HINGE_MM_S**2 * (r - HINGE_S * np.sign(r))) / we**2, r)
+        solve = _damped_solver(_duration_jacobian(plan, F, p[0], free), we, -we * rs)
         for _ in range(8):
             Fn = F.copy()
             Fn[fi] = np.clip(F[fi] * np.exp(np.clip(solve(lam), -1.0, 1.0)), 1e-3, hi[fi])
             pn = plan(Fn)
             rn = late0 + np.cumsum(pn[0] - D)
-            cn = float(np.sum((w * rn) ** 2))
+            cn = refine_objective(w, rn, hinge)
             if cn < cost:
                 break
             lam *= 10.0

@@ -17,7 +17,7 @@ import numpy as np
 
 from .chain_plan import ChainLimits, segment_limits
 
-__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds", "merged_wet_holds"]
+__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds", "merged_wet_holds", "merged_ramp_holds"]
 
 
 def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
@@ -205,6 +205,46 @@ def merged_wet_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, hold: np.nd
         elif g0 > 0 and srun[g0 - 1] == srun[g0] and keep[g0 - 1]:  # at the run's end: the one before
             j[g0 - 1] = j[g1]
             keep[g0:g1 + 1] = False
+    if keep.all():
+        return None
+    return i[keep], j[keep]
+
+
+def merged_ramp_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, hold: np.ndarray,
+                      ramp: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Segments ``i -> j`` with the holds at the ends of a slow ramp merged into the moving segment
+    next to them, or None where there are none.
+
+    A quiet z move (``PlannedMove.quiet``: ramps of one resonance period) leaves rest and comes to
+    rest slowly: its first and last samples move the nozzle less than a micrometre, which
+    :func:`settle_holds` writes as holds.  The firmware then stands still for them and has to cover
+    their motion in the one sample of the first moving segment (at ``max_z_accel``: 0.46 ms late
+    on a cube's z-hops on other_delta), or stops a micrometre short of the move's end and carries it
+    past the next retraction.  Here the group of holds at a run's start goes into the first moving
+    segment (which leaves rest at the run's start and spans their time), and the group at a run's
+    end into the last moving one (which ends on the move's end point at its time).
+
+    ``srun``, ``hold``, ``ramp``: per segment (``ramp``: the segment's run is a quiet move).
+    """
+    n = len(i)
+    if n == 0 or not (hold & ramp).any():
+        return None
+    keep = np.ones(n, bool)
+    j = j.copy()
+    i = i.copy()
+    starts = np.r_[0, np.nonzero(srun[1:] != srun[:-1])[0] + 1]
+    ends = np.r_[starts[1:], n]
+    for a, b in zip(starts.tolist(), ends.tolist()):
+        if not ramp[a] or hold[a:b].all():
+            continue
+        mv = np.nonzero(~hold[a:b])[0]
+        f, g = a + int(mv[0]), a + int(mv[-1])  # the first and the last moving segment
+        if f > a:  # holds from the run's start: the first moving segment leaves from the start
+            i[f] = i[a]
+            keep[a:f] = False
+        if g < b - 1:  # holds to the run's end: the last moving segment ends there
+            j[g] = j[b - 1]
+            keep[g + 1:b] = False
     if keep.all():
         return None
     return i[keep], j[keep]

@@ -69,6 +69,12 @@ def rest_to_rest_s(d_mm: float, v_mm_s: float, accel_mm_s2: float) -> float:
     return d_mm / v_mm_s + v_mm_s / accel_mm_s2
 
 
+def _flows_on(a, b) -> bool:
+    """Whether move ``b`` continues move ``a`` within 60 degrees (the junction keeps much of the speed)."""
+    ra, rb = a.axes_r, b.axes_r
+    return ra[0] * rb[0] + ra[1] * rb[1] + ra[2] * rb[2] > 0.5
+
+
 def _steep(m) -> bool:
     """A move that travels more in z than in XY (a layer change's z move, a z-hop)."""
     dx, dy, dz = m.axes_d[0], m.axes_d[1], m.axes_d[2]
@@ -81,7 +87,7 @@ class _Move:
     __slots__ = ("lineno", "start", "end", "axes_d", "axes_r", "move_d", "accel", "jd", "is_kin", "kind",
                  "min_move_t", "max_start_v2", "max_cruise_v2", "delta_v2", "max_smoothed_v2",
                  "smooth_delta_v2", "next_junction_v2", "start_v", "cruise_v", "end_v", "accel_t",
-                 "cruise_t", "decel_t")
+                 "cruise_t", "decel_t", "quiet", "loud")
 
     def limit_speed(self, speed: float, accel: float) -> None:
         speed2 = speed ** 2
@@ -331,6 +337,7 @@ class KlipperPlanner:
             velocity = min(speed, self.max_velocity)
             m.is_kin = is_kin = True
         m.lineno = line.lineno
+        m.quiet = False
         m.jd = self.junction_deviation
         m.accel = accel
         m.start = (sx, sy, sz, se)
@@ -355,9 +362,14 @@ class KlipperPlanner:
         q = self.queue
         if self.quiet_z_period_s is not None:
             if is_kin:
+                if q and q[-1].quiet and self._last_kin and _flows_on(q[-1], m):
+                    self._loud(q[-1])  # it runs on into this move: it does not come to rest
+                    if len(q) > 1:
+                        self._junction(q[-2], q[-1])
                 if not self._last_kin and _steep(m):
                     self._quiet(m)
-            elif q and q[-1].is_kin and self._last_kin and _steep(q[-1]) and self._quiet(q[-1]) and len(q) > 1:
+            elif q and q[-1].is_kin and self._last_kin and _steep(q[-1]) and not (
+                    len(q) > 1 and q[-2].is_kin and _flows_on(q[-2], q[-1])) and self._quiet(q[-1]) and len(q) > 1:
                 self._junction(q[-2], q[-1])  # its junction, with its new acceleration
             self._last_kin = is_kin
         if not q:
@@ -396,10 +408,21 @@ class KlipperPlanner:
         a = quiet_accel(m.move_d, v, self.quiet_z_period_s)
         if not a < m.accel:
             return False
+        added = rest_to_rest_s(m.move_d, v, a) - rest_to_rest_s(m.move_d, v, m.accel)
         self.quiet_moves += 1
-        self.quiet_added_s += rest_to_rest_s(m.move_d, v, a) - rest_to_rest_s(m.move_d, v, m.accel)
+        self.quiet_added_s += added
+        m.loud = (m.accel, m.delta_v2, m.smooth_delta_v2, added)
         m.limit_speed(v, a)
+        m.quiet = True
         return True
+
+    def _loud(self, m: _Move) -> None:
+        """Undo :meth:`_quiet` (the move runs on into the next one, collinear: it does not come to rest,
+        and its slow ramp would only slow the z travel)."""
+        m.accel, m.delta_v2, m.smooth_delta_v2, added = m.loud
+        m.quiet = False
+        self.quiet_moves -= 1
+        self.quiet_added_s -= added
 
     def _extruder_check_move(self, m: _Move, line) -> None:
         axis_r = m.axes_r[3]
@@ -476,7 +499,7 @@ class KlipperPlanner:
         for m in moves:
             out.append(PlannedMove(n, m.lineno, MOVE if m.is_kin else m.kind, t, m.start, m.end, m.move_d,
                                    m.axes_r, m.start_v, m.cruise_v, m.end_v, m.accel, m.accel_t, m.cruise_t,
-                                   m.decel_t))
+                                   m.decel_t, m.quiet))
             n += 1
             t = t + m.accel_t + m.cruise_t + m.decel_t
         self.n_out = n

@@ -53,6 +53,9 @@ class PlannedMove(NamedTuple):
         Acceleration used for both ramps, mm/s^2.
     accel_t_s, cruise_t_s, decel_t_s : float
         Durations of the three phases, s.
+    quiet : bool
+        Planned with quiet ramps (ffcomp's own plan of a z move next to a hold, not the firmware's:
+        :class:`ffcomp.gcode.klipper.KlipperPlanner`'s ``quiet_z_period_s``).
     """
 
     index: int
@@ -70,6 +73,7 @@ class PlannedMove(NamedTuple):
     accel_t_s: float
     cruise_t_s: float
     decel_t_s: float
+    quiet: bool = False
 
     @property
     def duration_s(self) -> float:

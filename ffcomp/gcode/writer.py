@@ -45,7 +45,7 @@ from ..linalg3 import max_abs3
 from .chain_plan import ChainLimits, corner_v2, segment_limits, z_accel_needed
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
-from .holds import merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
+from .holds import merged_ramp_holds, merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import (
@@ -644,6 +644,15 @@ class GcodeWriter:
             i, j = merged
             dt = (K[j] - K[i]) * self.dt
             srun, first_seg, Pr, d, dist, hold = settled(i, j)
+        # the slow ends of a quiet z move's ramps: not holds (holds.merged_ramp_holds)
+        quiet = np.array([r.move is not None and r.move.kind == MOVE and r.move.quiet
+                          for r in (runs[q] for q in run_ids)], bool)
+        if quiet.any():
+            merged = merged_ramp_holds(i, j, srun, hold, quiet[srun])
+            if merged is not None:
+                i, j = merged
+                dt = (K[j] - K[i]) * self.dt
+                srun, first_seg, Pr, d, dist, hold = settled(i, j)
         if self.chain is not None:  # (a hold moves the next segment's start: a few passes)
             micro = np.zeros(len(i), bool)
             for _ in range(3):

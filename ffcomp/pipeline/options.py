@@ -107,7 +107,9 @@ class CompensateOptions:
     #: most of what the written file loses against the exact commands at layer changes.  The print
     #: takes longer by the slower ramps (counted in the summary).  Klipper only (its planner plans
     #: the source); see :class:`ffcomp.gcode.klipper.KlipperPlanner`'s ``quiet_z_period_s``.
-    quiet_z: bool = False
+    #: None (the default): on where the profile's planner is Klipper's; False: off; True: on, and a
+    #: warning where the planner is another.
+    quiet_z: bool | None = None
     #: passes of the feed re-timing on the firmware's own plan for planners the writer has no exact
     #: chain model of (Marlin; :mod:`ffcomp.pipeline.retime`); 0: none.  Klipper's writer solves its
     #: feeds against an exact copy of Klipper's lookahead and needs none.

@@ -20,7 +20,7 @@ from ..gcode.sampler import concat_blocks, sample_gcode
 from ..model.lpv import LpvModel
 from ..sim.metrics import ErrorReport, evaluate_masked, extruding_mask
 from ..sim.plant import DeltaPlant
-from .compensate_flow import CompensationSummary, compensate_file, inv_pre_samples
+from .compensate_flow import CompensateOptions, CompensationSummary, compensate_file, inv_pre_samples
 from .header import quiet_z_period_s
 
 __all__ = ["OutputCheck", "check_gcode_output"]
@@ -92,7 +92,7 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     from ..gcode.start import resolve_start
 
     start = resolve_start(str(src), profile).position_mm  # where the compensation's plan starts
-    qp = quiet_z_period_s(profile, opts) if opts is not None else None
+    qp = quiet_z_period_s(profile, opts if opts is not None else CompensateOptions())
     qkw = {} if qp is None else {"quiet_z_period_s": qp}  # (the quiet z moves are part of the intended motion)
     ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start, **qkw))
     dt = ref.t_s[1] - ref.t_s[0]
