@@ -361,17 +361,7 @@ class KlipperPlanner:
         self.commanded_pos = [ex, ey, ez, ee]
         q = self.queue
         if self.quiet_z_period_s is not None:
-            if is_kin:
-                if q and q[-1].quiet and self._last_kin and _flows_on(q[-1], m):
-                    self._loud(q[-1])  # it runs on into this move: it does not come to rest
-                    if len(q) > 1:
-                        self._junction(q[-2], q[-1])
-                if not self._last_kin and _steep(m):
-                    self._quiet(m)
-            elif q and q[-1].is_kin and self._last_kin and _steep(q[-1]) and not (
-                    len(q) > 1 and q[-2].is_kin and _flows_on(q[-2], q[-1])) and self._quiet(q[-1]) and len(q) > 1:
-                self._junction(q[-2], q[-1])  # its junction, with its new acceleration
-            self._last_kin = is_kin
+            self._quiet_rules(q, m)
         if not q:
             q.append(m)
             return
@@ -400,6 +390,27 @@ class KlipperPlanner:
         m.max_start_v2 = max_start_v2
         reach_v2 = prev.max_smoothed_v2 + prev.smooth_delta_v2
         m.max_smoothed_v2 = reach_v2 if reach_v2 < max_start_v2 else max_start_v2
+
+    def _quiet_rules(self, q: list, m: _Move) -> None:
+        """Which moves ``quiet_z_period_s`` plans quiet, as ``m`` joins the queue ``q``: a steep move
+        right after an extruder-only move (when it is made), a steep move right before one (when the
+        extruder-only move comes; the move is still queued: the look-ahead keeps its last move), but
+        not one that runs on within 60 degrees into the next move or from the one before (it does not
+        come to rest).  A move whose acceleration changes gets its junction with the move before it
+        again."""
+        prev = q[-1] if q and self._last_kin else None  # the move made just before m, if an XYZ one
+        before = q[-2] if len(q) > 1 and q[-2].is_kin else None
+        if m.is_kin:
+            if prev is not None and prev.quiet and _flows_on(prev, m):
+                self._loud(prev)
+                if before is not None:
+                    self._junction(before, prev)
+            if not self._last_kin and _steep(m):
+                self._quiet(m)
+        elif prev is not None and _steep(prev) and not (before is not None and _flows_on(before, prev)):
+            if self._quiet(prev) and before is not None:
+                self._junction(before, prev)
+        self._last_kin = m.is_kin
 
     def _quiet(self, m: _Move) -> bool:
         """Lower ``m``'s acceleration so that its ramp from rest lasts ``quiet_z_period_s``
