@@ -1,7 +1,7 @@
 """The vectorised chain plan against the move-by-move Klipper planner (the judge)."""
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from ffcomp.gcode.chain_plan import ChainLimits, junction_v2, plan_chain, segment_limits, z_accel_needed
@@ -79,6 +79,7 @@ def test_trapezoids_plan_a_batch_of_feed_rates_bit_for_bit():
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), z_share=st.floats(0.0, 3.0))
+@example(seed=54, z_share=1e-06)
 def test_the_max_z_accel_a_junction_needs_is_what_klippers_rules_ask(seed, z_share):
     """``z_accel_needed`` against Klipper's own junction rules (:func:`junction_v2`): with
     ``max_z_accel`` at a junction's stated need, the rules let the chain through that junction at the
@@ -107,7 +108,9 @@ def test_the_max_z_accel_a_junction_needs_is_what_klippers_rules_ask(seed, z_sha
     for j in range(n - 1):
         if need[j] <= 1.0:  # (no z to speak of)
             continue
-        assert jv2_at(j, need[j] * (1 + 1e-9)) >= v2[j] * (1 - 1e-9)
+        # (1e-7: with a z share of 1e-6 the cap max_z_accel * d / |dz| is computed from a dz of a few
+        # 1e-8 mm, and the junction speed comes out 1e-8 short in relative terms: seed 54)
+        assert jv2_at(j, need[j] * (1 + 1e-9)) >= v2[j] * (1 - 1e-7)
         if need[j] > max(along[j] * 1.02, 1.0):
             assert jv2_at(j, need[j] * 0.99) < v2[j]
 
