@@ -155,6 +155,9 @@ def test_cli_header_and_simulate_take_quiet_z(tmp_path, capsys, profile):
     assert off["quiet_z_moves"] == 0 and off["quiet_z_period_s"] is None
     assert "quiet_z=" not in (tmp_path / "off.gcode").read_text()
     assert off["print_time_s"] == pytest.approx(d["print_time_s"] - d["quiet_z_time_s"], abs=1e-3)
+    # with --jobs the workers plan and count; the period is the run's (it was None there)
+    j2 = run_json(capsys, src, "-o", tmp_path / "j2.gcode", "--jobs", "2", "--no-progress")
+    assert j2["quiet_z_period_s"] == pytest.approx(d["quiet_z_period_s"]) and j2["quiet_z_moves"] == 1
     T = settings_quiet_z_period_s(out)
     assert T == pytest.approx(d["quiet_z_period_s"], rel=1e-5) and settings_quiet_z_period_s(src) is None
     plain = load_gcode_trajectory(profile, src, split=False)
