@@ -13,7 +13,10 @@ the firmware executes, iterated on the model's own plant: :mod:`ffcomp.compensat
 same fraction, and how many times its lag-aligned RMS the exact commands and the G-code leave
 (``--no-limit`` skips these columns).  Prints a Markdown table per profile.
 ``--hold-margin-ms M`` adds M ms of rest before every retraction and after every unretraction
-(``CompensateOptions.hold_margin_s``); the reference then includes that rest.
+(``CompensateOptions.hold_margin_s``) and ``--quiet-z 1`` plans the z moves next to retractions with
+slower, quiet ramps; the reference then includes that time, and two more columns judge the G-code
+against the source's own plan, as an independent judge that plans the source file does (there the
+added time counts as error).
 """
 
 from __future__ import annotations
@@ -126,6 +129,18 @@ def _limit_cells(c, none_lag_um: float) -> str:
             f"| {c.over_limit('gcode'):.1f}x |")
 
 
+def _source_cells(c, moved: bool) -> str:
+    """The G-code's lag-aligned and contour ratios judged against the source's own plan (what a
+    judge that plans the source file sees: the time the options add counts as error)."""
+    if not moved:
+        return ""
+    if c.source_clock is None:
+        return " = | = |"
+    n, g = c.source_clock["none"], c.source_clock["gcode"]
+    return (f" {g.lag.rms_norm_um / n.lag.rms_norm_um:.3f} | "
+            f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="shorter files")
@@ -147,8 +162,8 @@ def main() -> None:
                     help="skip the physical-limit columns (the limit's commands cost about 1.5 s of CPU per "
                          "second of motion)")
     ap.add_argument("--quiet-z", default=None, choices=["0", "1"],
-                    help="CompensateOptions.quiet_z (1, the default on Klipper: the z moves next to retractions "
-                         "planned with quiet ramps, and the reference with them; 0: as the source plans them)")
+                    help="CompensateOptions.quiet_z (1: the z moves next to retractions planned with quiet ramps, and "
+                         "the reference with them; 0, the default: as the source plans them)")
     ap.add_argument("--tol-um", type=float, default=None,
                     help="CompensateOptions.tol_um (the writer's point placement tolerance, default 5)")
     a = ap.parse_args()
@@ -174,9 +189,14 @@ def main() -> None:
             continue
         print(f"\n### {pname}\n")
         lim_head = "" if a.no_limit else " limit lag | exact / limit | G-code / limit |"
+        # options that add time (margins, quiet z moves): the output judged on the source's own plan too
+        moved = bool(a.hold_margin_ms) or a.quiet_z == "1"
+        src_head = " G-code lag, source clock | G-code contour, source clock |" if moved else ""
         print("| file | exact lag | G-code lag | exact contour | G-code contour | kept lag | kept contour "
-              "| kept lag, extruding | kept contour, extruding | drift max (ms) | clock error max (um) |" + lim_head)
-        print("|---|---|---|---|---|---|---|---|---|---|---|" + ("" if a.no_limit else "---|---|---|"))
+              "| kept lag, extruding | kept contour, extruding | drift max (ms) | clock error max (um) |"
+              + lim_head + src_head)
+        print("|---|---|---|---|---|---|---|---|---|---|---|" + ("" if a.no_limit else "---|---|---|")
+              + ("---|---|" if moved else ""))
         for name, text in files(a.quick).items():
             if a.only and a.only not in name:
                 continue
@@ -197,7 +217,7 @@ def main() -> None:
                   f"{g.contour.rms_norm_um / n.contour.rms_norm_um:.3f} | {c.kept('lag'):.2f} | "
                   f"{c.kept('contour'):.2f} | {_f(c.kept_extruding('lag'))} | {_f(c.kept_extruding('contour'))} "
                   f"| {c.summary.self_check_drift_ms:+.3f} | {c.summary.self_check_abs_max_um:.1f} |"
-                  + _limit_cells(c, nl), flush=True)
+                  + _limit_cells(c, nl) + _source_cells(c, moved), flush=True)
         if a.drift_file:
             print("\n| file | drift max (ms) | at (s) | self-check max (um) | clock error max (um) |\n"
                   "|---|---|---|---|---|")

@@ -2,8 +2,8 @@
 firmware values, and ``simulate --compare`` aligning a pre-rolled output.
 
 The tests of one writer mechanism at a layer change or a z-hop run on the source's own plan
-(``quiet_z=False``): the quiet z moves (on by default) plan those z moves slower, and most of the
-cases these tests hold do not arise there (``--no-quiet-z`` and Marlin files still meet them)."""
+(``quiet_z=False``, the default, stated where it matters): the quiet z moves (``--quiet-z``) plan those
+z moves slower, and most of the cases these tests hold do not arise there."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -1157,7 +1157,7 @@ def test_a_chunk_that_ends_on_a_corner_holds_back_the_moves_end(tmp_path, before
 
 
 def test_the_hinge_splits_a_stretch_the_limits_cannot_run_in_its_time(tmp_path, monkeypatch):
-    """vase_prusa on other_delta: a layer change's lift (at ``max_z_accel``) turns into its travel,
+    """vase_prusa on other_delta with quiet z moves: a layer change's lift (at ``max_z_accel``) turns into its travel,
     whose first chords need more than the delta cap allows.  Weighted by speed alone the joint solve
     put most of that lateness at the lift's top, where the nozzle is slow (-0.234 ms); with the hinge
     (``feed_solve.HINGE_S``) the chain is solved again and the lateness splits (-0.131 ms), while the
@@ -1167,7 +1167,7 @@ def test_the_hinge_splits_a_stretch_the_limits_cannot_run_in_its_time(tmp_path, 
     def run():
         s = compensate_file(str(ROOT / "samples" / "gcode" / "vase_prusa.gcode"), str(tmp_path / "o.gcode"),
                             load_profile(OTHER), CompensateOptions(predict=False, self_check_drift_ms=1e9,
-                                                                   self_check_tol_um=1e9))
+                                                                   self_check_tol_um=1e9, quiet_z=True))
         return s.self_check_drift_ms, s.self_check_abs_max_um
 
     on, on_um = run()

@@ -47,13 +47,14 @@ def compensate_cmd(
                                                   "move the nozzle during an extruder-only move). 15 keeps "
                                                   "~95 % of the gain on extruded lines at layer changes; the "
                                                   "print takes that much longer per margin. 0: none.")] = 0.0,
-    quiet_z: Annotated[Optional[bool], typer.Option("--quiet-z/--no-quiet-z", help="Plan the z moves next to "
+    quiet_z: Annotated[bool, typer.Option("--quiet-z/--no-quiet-z", help="Plan the z moves next to "
                                           "retractions (layer changes, z-hop lifts and descents) with ramps "
                                           "one period of the printer's z resonance long, so they leave "
                                           "almost no ringing (a G-code file cannot compensate them: the "
                                           "nozzle stands still in the retractions around them). Klipper "
-                                          "only (on by default there); the print takes about 20 ms longer "
-                                          "per such move.")] = None,
+                                          "only; off by default: the print takes about 20 ms longer per "
+                                          "such move, so the output no longer runs on the source's own "
+                                          "clock.")] = False,
     self_check: Annotated[bool, typer.Option("--self-check/--no-self-check", help="Re-plan the output and "
                                              "compare with the intended commands.")] = True,
     self_check_tol_um: Annotated[float, typer.Option("--self-check-tol-um", help="Self-check limit, um.")] = 50.0,

@@ -31,8 +31,8 @@ def hook_cmd(
     z_mode: Annotated[str, typer.Option("--z-mode", help="keep or hold (see ffcomp compensate).")] = "keep",
     hold_margin_ms: Annotated[float, typer.Option("--hold-margin-ms", help="Rest (ms) added around retractions "
                                                   "(see ffcomp compensate). 0: none.")] = 0.0,
-    quiet_z: Annotated[Optional[bool], typer.Option("--quiet-z/--no-quiet-z", help="Quiet z moves next to retractions "
-                                          "(see ffcomp compensate; default: on for Klipper).")] = None,
+    quiet_z: Annotated[bool, typer.Option("--quiet-z/--no-quiet-z", help="Quiet z moves next to retractions "
+                                          "(see ffcomp compensate; off by default).")] = False,
     cura_script: Annotated[bool, typer.Option("--cura-script", help="Print the path of the Cura "
                                               "post-processing script and exit.")] = False,
     jobs: JobsOpt = 1,

