@@ -190,6 +190,9 @@ def test_cli_header_and_simulate_take_quiet_z(tmp_path, capsys, profile):
     assert len(quiet.q_m) - len(plain.q_m) == pytest.approx(d["quiet_z_time_s"] * 1000, abs=2)
     code, stdout, err = run(capsys, "simulate", src, "--compare", out)
     assert code == 0, err
+    assert "quiet z moves next to retractions; the reference" in " ".join(stdout.split()), stdout
+    code, stdout, err = run(capsys, "simulate", src, "--compare", tmp_path / "off.gcode")
+    assert code == 0 and "the reference above has them" not in " ".join(stdout.split()), err
     code, _, err = run(capsys, "hook", src, "--quiet-z")
     assert code == 0, err
     assert "quiet_z=" in src.read_text()

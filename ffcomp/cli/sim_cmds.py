@@ -85,6 +85,16 @@ def simulate_cmd(
         console.print(t)
     console.print(f"simulated {len(rep.runs)} run(s) x {rep.reference.duration_s:.2f} s "
                   f"in {rep.wall_s:.1f} s")
+    if compare is not None:
+        from ..pipeline.header import settings_hold_margin_s, settings_quiet_z_period_s
+
+        added = [f"rest margins of {m * 1e3:g} ms around retractions" for m in [settings_hold_margin_s(compare)] if m]
+        if settings_quiet_z_period_s(compare) is not None:
+            added.append("quiet z moves next to retractions")
+        if added:  # (sim_flow planned the reference with them: the runs share one clock)
+            console.print(f"note: {Path(compare).name} was written with {' and '.join(added)}; the reference "
+                          "above has them too. Against the source as written, the time they add counts as "
+                          "error (bench_gcode_fidelity.py's source-clock columns).")
     for f in files:
         console.print(f"wrote {f}")
 
