@@ -88,7 +88,10 @@ def simulate_cmd(
     if compare is not None:
         from ..pipeline.header import settings_hold_margin_s, settings_quiet_z_period_s
 
-        added = [f"rest margins of {m * 1e3:g} ms around retractions" for m in [settings_hold_margin_s(compare)] if m]
+        added = []
+        margin_s = settings_hold_margin_s(compare)
+        if margin_s:
+            added.append(f"rest margins of {margin_s * 1e3:g} ms around retractions")
         if settings_quiet_z_period_s(compare) is not None:
             added.append("quiet z moves next to retractions")
         if added:  # (sim_flow planned the reference with them: the runs share one clock)

@@ -318,8 +318,7 @@ def _solve_chain(lim: ChainLimits, P0, P1, de, D, free, late0, start_v2, end_ope
     if REFINE_ITERS and free.any():
         w = clock_weights(dist, D)
         hi = np.minimum(Fmax, vmax)
-        late_b = late0 + np.cumsum(best_plan[0] - D)
-        off = np.abs(w * late_b)
+        off = np.abs(w * (late0 + np.cumsum(best_plan[0] - D)))
         if float(np.sqrt(np.mean(off**2))) > REFINE_MIN_MM:
             best, best_plan = _refine(plan, best, best_plan, free, D, late0, hi, w)
             if HINGE_OPEN_CHAINS or not end_open:

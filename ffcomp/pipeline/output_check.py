@@ -76,6 +76,13 @@ class OutputCheck:
         return (n - g) / (n - e)
 
 
+def _at_rest_first(X: np.ndarray, q: np.ndarray, e: np.ndarray, n_pre: int) -> tuple:
+    """The records ``X``, ``q`` (rows) and ``e`` with ``n_pre`` samples of rest at their first
+    sample put before them."""
+    return (np.vstack([np.repeat(X[:1], n_pre, 0), X]), np.vstack([np.repeat(q[:1], n_pre, 0), q]),
+            np.concatenate([np.repeat(e[:1], n_pre), e]))
+
+
 def _fit(a: np.ndarray, n: int) -> np.ndarray:
     """The record ``a`` cut to ``n`` samples, or held at its last sample up to ``n``."""
     return a[:n] if len(a) >= n else np.vstack([a, np.repeat(a[-1:], n - len(a), 0)])
@@ -111,9 +118,7 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
 
         moves = {mv.index: mv for mv in GcodePlan(str(src), profile, start_position_mm=start, **qkw)}
         Xs, qs, es = with_margins((Xs, qs, es), ref.move_index, moves, int(round(margin_s / dt)))
-    X = np.vstack([np.repeat(Xs[:1], n_pre, 0), Xs])
-    q = np.vstack([np.repeat(qs[:1], n_pre, 0), qs])
-    e = np.concatenate([np.repeat(es[:1], n_pre), es])
+    X, q, e = _at_rest_first(Xs, qs, es, n_pre)
     t = np.arange(len(q)) * dt
     ideal = invert(LpvModel.from_profile(profile), q, X, dt).q_cmd
     summ = compensate_file(str(src), str(out), profile, *([opts] if opts is not None else []))
@@ -146,10 +151,10 @@ def check_gcode_output(profile, src: str | Path, out: str | Path, plant_profile=
     intended = (n_pre + round(cfg.post_s / dt)) * dt + summ.print_time_s + summ.hold_margin_time_s
     source_clock = None
     if qkw or margin_s > 0:  # the output judged against the source's own plan as well
-        src_ref = concat_blocks(sample_gcode(str(src), profile, overlap=0, start_position_mm=start))
-        Xo = np.vstack([np.repeat(src_ref.xyz_m[:1], n_pre, 0), src_ref.xyz_m])
-        qo = np.vstack([np.repeat(src_ref.q_m[:1], n_pre, 0), src_ref.q_m])
-        eo = np.concatenate([np.repeat(src_ref.e_mm[:1], n_pre), src_ref.e_mm])
+        # (without quiet moves the plan sampled above is the source's own: only the margins differ)
+        src_ref = ref if not qkw else concat_blocks(sample_gcode(str(src), profile, overlap=0,
+                                                                 start_position_mm=start))
+        Xo, qo, eo = _at_rest_first(src_ref.xyz_m, src_ref.q_m, src_ref.e_mm, n_pre)
         to = np.arange(len(qo)) * dt
         so = DeltaPlant.from_profile(plant_profile or profile).simulate(
             to, np.stack([qo, _fit(out_s.q_m, len(qo))]), hold="linear")
