@@ -102,7 +102,7 @@ def compensate_cmd(
         raise typer.BadParameter(f"--hold-margin-ms must be between 0 and 1000, got {hold_margin_ms}")
     if hold_margin_ms and fmt != "gcode":
         raise typer.BadParameter("--hold-margin-ms is for G-code output (step streams move during retractions)")
-    if quiet_z is True and fmt != "gcode":
+    if quiet_z and fmt != "gcode":
         raise typer.BadParameter("--quiet-z is for G-code output (step streams move during retractions)")
     if jobs != 1 and fmt != "gcode":
         raise typer.BadParameter("--jobs is for G-code output (--format gcode) only")

@@ -127,7 +127,7 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
                                start_mm=list(start.position_mm[:3]), homed_first=start.homed_first)
     _check_flavour(src, profile, summ)
     summ.quiet_z_period_s = quiet_z_period_s(profile, opts)  # (here: with --jobs the workers count the moves)
-    if opts.quiet_z is True and profile.limits.planner != "klipper":
+    if opts.quiet_z and profile.limits.planner != "klipper":
         summ.warnings += 1
         summ.notes.append(f"quiet z moves (--quiet-z) are planned for Klipper only; the {profile.limits.planner} "
                           "plan of this file keeps its z moves as they are")

@@ -359,7 +359,7 @@ def quiet_z_period_s(profile, opts) -> float | None:
     """The period (s) of the printer's z resonance that ``opts.quiet_z`` times the z moves next to
     holds with (:func:`ffcomp.model.modes.z_resonance_hz` at the bed centre); None when off or the
     profile's planner is not Klipper's (off by default)."""
-    if getattr(opts, "quiet_z", False) is not True or profile.limits.planner != "klipper":
+    if not getattr(opts, "quiet_z", False) or profile.limits.planner != "klipper":
         return None
     from ..model.lpv import LpvModel
     from ..model.modes import z_resonance_hz
