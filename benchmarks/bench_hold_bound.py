@@ -1,0 +1,211 @@
+"""Benchmark: the least error any G-code can leave where it must stand still (a bound).
+
+Run: ``python benchmarks/bench_hold_bound.py [--quick] [--only NAME] [--profiles default,other_delta]
+[--accel 10]``.  On the fidelity bench's files (``bench_gcode_fidelity.py``, the same profiles and
+plants), every layer change and z-hop has samples where a G-code file cannot move the command:
+the extruder-only moves (retraction, unretraction) and, at the profile's ``max_z_accel``, the z
+moves next to them (the firmware runs those as planned).  Around each cluster of such samples
+(0.15 s either side, plus the ringing tail) :func:`ffcomp.compensate.hold_bound.pinned_optimum`
+finds the command with the least tracking error that equals the plan there, every other sample
+free (a knot per sample), with only a light penalty on its acceleration (``--accel`` m/s^2 of command
+acceleration cost as much as 1 um of error; the default 10 lets the command accelerate at hundreds of
+m/s^2, so the bound is optimistic).  Outside those windows the command is the exact one.  The whole
+file is then simulated on the profile's plant, as the fidelity bench does.
+
+For each file it prints, as the fidelity bench does (lag-aligned and contour RMS as a fraction of the
+uncompensated file's): the exact commands, the written G-code, the bound with the holds and the
+nozzle's z on their z moves fixed (their x and y free: what a file at the profile's limits can reach
+at best, since a z move that runs at ``max_z_accel`` for its whole duration has no other z profile of
+the same length and time), and the bound with only the
+extruder-only moves fixed (the z moves free: what a firmware whose ``max_z_accel`` let the z move
+carry its compensation could reach); then the share of the exact commands' reduction each keeps.
+A bound's kept share below 0.90 says the fidelity bench's target is out of reach for that file
+whatever the pipeline does, to this model's linearisation.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+import bench_gcode_fidelity as fid  # noqa: E402
+
+from ffcomp.compensate.hold_bound import pinned_optimum  # noqa: E402
+from ffcomp.compensate.inverse import InverseConfig, invert  # noqa: E402
+from ffcomp.compensate.pin_repair import PulseResponses, RepairConfig, pinned_clusters  # noqa: E402
+from ffcomp.gcode.planner import GcodePlan  # noqa: E402
+from ffcomp.gcode.sampler import concat_blocks, sample_gcode  # noqa: E402
+from ffcomp.gcode.start import resolve_start  # noqa: E402
+from ffcomp.kinematics import forward, jacobian  # noqa: E402
+from ffcomp.model.lpv import LpvModel  # noqa: E402
+from ffcomp.pipeline.compensate_flow import CompensateOptions  # noqa: E402
+from ffcomp.pipeline.limited_moves import z_hop  # noqa: E402
+from ffcomp.pipeline.output_check import check_gcode_output  # noqa: E402
+from ffcomp.pipeline.stream_flow import inv_pre_samples  # noqa: E402
+from ffcomp.profile import default_profile, load_profile  # noqa: E402
+from ffcomp.sim.metrics import evaluate_masked, extruding_mask  # noqa: E402
+from ffcomp.sim.plant import DeltaPlant  # noqa: E402
+
+MARGIN_S = 0.15  # free command either side of a cluster of fixed samples, s
+GAP_S = 0.3  # clusters closer than this share a window, s
+TAIL_S = 0.3  # ringing counted after the window, s
+
+
+def fixed_masks(move_index: np.ndarray, moves: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: on an extruder-only move or dwell (a hold), and on a z move (more z than XY)
+    right after or right before one."""
+    def hold(i) -> bool:
+        mv = moves.get(int(i))
+        return mv is not None and mv.kind != "move"
+
+    def z_next_to_hold(i) -> bool:
+        mv = moves.get(int(i))
+        return (mv is not None and mv.kind == "move" and z_hop(mv)
+                and (hold(mv.index - 1) or hold(mv.index + 1)))
+
+    ids = np.unique(move_index)
+    h = {int(i): hold(i) for i in ids}
+    z = {int(i): z_next_to_hold(i) for i in ids}
+    return (np.array([h[int(i)] for i in move_index]), np.array([z[int(i)] for i in move_index]))
+
+
+def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarray, fixed: np.ndarray,
+                  fixed_z: np.ndarray, dt: float, accel: float, z_box: np.ndarray | None = None,
+                  max_z_accel_m_s2: float = 0.0) -> tuple[np.ndarray, int]:
+    """The exact command with every window around ``fixed`` samples (all axes), ``fixed_z`` samples
+    (the nozzle's z only) and ``z_box`` samples (the nozzle's z acceleration within
+    ``max_z_accel_m_s2``) replaced by its optimum."""
+    pr = PulseResponses(model, dt, RepairConfig(tail_s=TAIL_S))
+    u = ideal.copy()
+    m, N = int(round(MARGIN_S / dt)), len(q)
+    box = np.zeros(N, bool) if z_box is None else z_box
+    z_exact = forward(model.geometry, ideal)[:, 2] if box.any() else None
+    wins = pinned_clusters(fixed | fixed_z | box, int(round(GAP_S / dt)))
+    for a0, b0 in wins:
+        a, b = max(a0 - m, 0), min(b0 + m, N)
+        pose = X[(a0 + b0) // 2]
+        za = (box[a:b], z_exact[a:b], max_z_accel_m_s2) if box[a:b].any() else None
+        opt = pinned_optimum(pr.at(pose), jacobian(model.geometry, pose), fixed[a:b], (q - ideal)[a:b], dt,
+                             pin_z=fixed_z[a:b], z_accel=za, accel_m_s2=accel)
+        u[a:b] += opt.correction_m
+    return u, len(wins)
+
+
+@dataclass
+class FileBounds:
+    """One file's runs: ``check`` (none, exact, G-code; :func:`check_gcode_output`), the number of
+    windows, and the reports of the three bounds (``limits``: holds fixed, the z moves' z within
+    ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves free),
+    none of them when the file has no hold."""
+
+    check: object
+    windows: int
+    none: object = None
+    limits: object = None
+    planned: object = None
+    free: object = None
+
+    def ratio(self, run: str, metric: str = "lag") -> float:
+        """RMS of ``run`` (``exact``, ``gcode`` or a bound) over the uncompensated file's."""
+        if run in ("exact", "gcode"):
+            return getattr(getattr(self.check, run), metric).rms_norm_um / getattr(self.check.none, metric).rms_norm_um
+        return getattr(getattr(self, run), metric).rms_norm_um / getattr(self.none, metric).rms_norm_um
+
+    def kept(self, run: str, metric: str = "lag") -> float:
+        """Share of the exact commands' reduction ``run`` keeps."""
+        return (1 - self.ratio(run, metric)) / (1 - self.ratio("exact", metric))
+
+
+def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileBounds:
+    """The fidelity bench's runs of one file (G-code ``text``) and the three bounds."""
+    src = tmp / "in.gcode"
+    src.write_text(text)
+    c = check_gcode_output(prof, src, tmp / "out.gcode", plant_profile=truth,
+                           opts=CompensateOptions(predict=False, self_check_tol_um=1e9, self_check_drift_ms=1e9))
+    # the same reference as check_gcode_output's: the plan with the inverse's rest before it
+    start = resolve_start(str(src), prof).position_mm
+    ref = concat_blocks(sample_gcode(str(src), prof, overlap=0, start_position_mm=start))
+    moves = {mv.index: mv for mv in GcodePlan(str(src), prof, start_position_mm=start)}
+    dt = float(ref.t_s[1] - ref.t_s[0])
+    n_pre = inv_pre_samples(InverseConfig(), dt)
+    X = np.vstack([np.repeat(ref.xyz_m[:1], n_pre, 0), ref.xyz_m])
+    q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
+    e = np.concatenate([np.repeat(ref.e_mm[:1], n_pre), ref.e_mm])
+    mi = np.concatenate([np.full(n_pre, -1), ref.move_index])
+    hold, zmove = fixed_masks(mi, moves)
+    if not hold.any():
+        return FileBounds(c, 0)
+    model = LpvModel.from_profile(prof)
+    t = np.arange(len(q)) * dt
+    ideal = invert(model, q, X, dt).q_cmd
+    no = np.zeros_like(hold)
+    u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel, zmove, prof.limits.max_z_accel_mm_s2 * 1e-3)
+    u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel)
+    u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel)
+    sim = DeltaPlant.from_profile(truth or prof).simulate(t, np.stack([q, u_lim, u_planned, u_free]), hold="linear")
+    ext = extruding_mask(X, e, dt)
+    reps = [evaluate_masked(t, X, sim.xyz_m[r], ext)[0] for r in range(4)]
+    return FileBounds(c, nw, *reps)
+
+
+BOUNDS = ("limits", "planned", "free")
+
+
+def _cells(fb: FileBounds, metric: str) -> str:
+    return " / ".join(f"{fb.ratio(b, metric):.3f}" for b in BOUNDS)
+
+
+def _kept(fb: FileBounds, metric: str) -> str:
+    return " / ".join(f"{fb.kept(r, metric):.2f}" for r in ("gcode",) + BOUNDS)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="the fidelity bench's quick files")
+    ap.add_argument("--only", default=None, help="only files whose name contains this")
+    ap.add_argument("--profiles", default="default,other_delta")
+    ap.add_argument("--accel", type=float, default=10.0,
+                    help="command acceleration (m/s^2) that costs as much as 1 um of error (default 10)")
+    a = ap.parse_args()
+    profiles = {"default": (default_profile(), None),
+                "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
+                                load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
+    tmp = Path(tempfile.mkdtemp(prefix="bench_hold_bound_"))
+    for pname, (prof, truth) in profiles.items():
+        if pname not in a.profiles.split(","):
+            continue
+        print(f"\n### {pname}\n")
+        print("| file | windows | exact lag | G-code lag | bound lag: profile's limits / z as planned / z free "
+              "| exact contour | G-code contour | bound contour: limits / planned / free "
+              "| kept lag: G-code / bounds | kept contour: G-code / bounds |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for name, text in fid.files(a.quick).items():
+            if a.only and a.only not in name:
+                continue
+            fb = file_bounds(prof, truth, text, tmp, a.accel)
+            if not fb.windows:
+                print(f"| {name} | 0 | {fb.ratio('exact'):.3f} | {fb.ratio('gcode'):.3f} | (no holds) "
+                      f"| {fb.ratio('exact', 'contour'):.3f} | {fb.ratio('gcode', 'contour'):.3f} | | "
+                      f"{fb.kept('gcode'):.2f} | {fb.kept('gcode', 'contour'):.2f} |", flush=True)
+                continue
+
+            print(f"| {name} | {fb.windows} | {fb.ratio('exact'):.3f} | {fb.ratio('gcode'):.3f} | {_cells(fb, 'lag')} "
+                  f"| {fb.ratio('exact', 'contour'):.3f} | {fb.ratio('gcode', 'contour'):.3f} "
+                  f"| {_cells(fb, 'contour')} | {_kept(fb, 'lag')} | {_kept(fb, 'contour')} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
