@@ -2,25 +2,30 @@
 
 Run: ``python benchmarks/bench_hold_bound.py [--quick] [--only NAME] [--profiles default,other_delta]
 [--accel 10]``.  On the fidelity bench's files (``bench_gcode_fidelity.py``, the same profiles and
-plants), every layer change and z-hop has samples where a G-code file cannot move the command:
-the extruder-only moves (retraction, unretraction) and, at the profile's ``max_z_accel``, the z
-moves next to them (the firmware runs those as planned).  Around each cluster of such samples
-(0.15 s either side, plus the ringing tail) :func:`ffcomp.compensate.hold_bound.pinned_optimum`
-finds the command with the least tracking error that equals the plan there, every other sample
-free (a knot per sample), with only a light penalty on its acceleration (``--accel`` m/s^2 of command
-acceleration cost as much as 1 um of error; the default 10 lets the command accelerate at hundreds of
-m/s^2, so the bound is optimistic).  Outside those windows the command is the exact one.  The whole
-file is then simulated on the profile's plant, as the fidelity bench does.
+plants), every layer change and z-hop has samples where a G-code file cannot move the command (the
+extruder-only moves: retraction, unretraction) and a z move between them that the firmware ramps at
+``max_z_accel`` at most.  Around each cluster of such samples (0.15 s either side, plus the ringing
+tail) :func:`ffcomp.compensate.hold_bound.pinned_optimum` finds the command with the least tracking
+error that equals the plan on the extruder-only moves, every other sample free (a knot per sample),
+with only a light penalty on its acceleration (``--accel`` m/s^2 of command acceleration cost as much
+as 1 um of error; the default 10 lets the command accelerate at hundreds of m/s^2, so the bound is
+optimistic).  Outside those windows the command is the exact one.  The whole file is then simulated
+on the profile's plant, as the fidelity bench does.
+
+Three bounds, by what the z move (more z than XY, next to an extruder-only move) may do:
+
+* ``limits``: the nozzle's z acceleration stays within the profile's ``max_z_accel`` on every sample
+  of the window (Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along a segment,
+  a cap on its z acceleration), the z move's x and y free: the best a file at the profile's limits
+  can do;
+* ``planned``: the z move's z fixed to the plan (its x and y free): the pipeline's own choice;
+* ``free``: the z move free: what a firmware whose ``max_z_accel`` let the z move carry its
+  compensation could reach.
 
 For each file it prints, as the fidelity bench does (lag-aligned and contour RMS as a fraction of the
-uncompensated file's): the exact commands, the written G-code, the bound with the holds and the
-nozzle's z on their z moves fixed (their x and y free: what a file at the profile's limits can reach
-at best, since a z move that runs at ``max_z_accel`` for its whole duration has no other z profile of
-the same length and time), and the bound with only the
-extruder-only moves fixed (the z moves free: what a firmware whose ``max_z_accel`` let the z move
-carry its compensation could reach); then the share of the exact commands' reduction each keeps.
-A bound's kept share below 0.90 says the fidelity bench's target is out of reach for that file
-whatever the pipeline does, to this model's linearisation.
+uncompensated file's), the exact commands, the written G-code and the three bounds, then the share of
+the exact commands' reduction each keeps.  A ``limits`` share below 0.90 says the fidelity bench's
+target is out of reach for that file whatever the pipeline does, to this model's linearisation.
 """
 
 from __future__ import annotations
@@ -84,16 +89,16 @@ def fixed_masks(move_index: np.ndarray, moves: dict) -> tuple[np.ndarray, np.nda
 
 def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarray, fixed: np.ndarray,
                   fixed_z: np.ndarray, dt: float, accel: float, z_box: np.ndarray | None = None,
-                  max_z_accel_m_s2: float = 0.0) -> tuple[np.ndarray, int]:
+                  max_z_accel_m_s2: float = 0.0, windows: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """The exact command with every window around ``fixed`` samples (all axes), ``fixed_z`` samples
     (the nozzle's z only) and ``z_box`` samples (the nozzle's z acceleration within
-    ``max_z_accel_m_s2``) replaced by its optimum."""
+    ``max_z_accel_m_s2``) replaced by its optimum; the windows around ``windows`` samples if given."""
     pr = PulseResponses(model, dt, RepairConfig(tail_s=TAIL_S))
     u = ideal.copy()
     m, N = int(round(MARGIN_S / dt)), len(q)
     box = np.zeros(N, bool) if z_box is None else z_box
     z_exact = forward(model.geometry, ideal)[:, 2] if box.any() else None
-    wins = pinned_clusters(fixed | fixed_z | box, int(round(GAP_S / dt)))
+    wins = pinned_clusters(fixed | fixed_z | box if windows is None else windows, int(round(GAP_S / dt)))
     for a0, b0 in wins:
         a, b = max(a0 - m, 0), min(b0 + m, N)
         pose = X[(a0 + b0) // 2]
@@ -107,8 +112,9 @@ def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarr
 @dataclass
 class FileBounds:
     """One file's runs: ``check`` (none, exact, G-code; :func:`check_gcode_output`), the number of
-    windows, and the reports of the three bounds (``limits``: holds fixed, the z moves' z within
-    ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves free),
+    windows, and the reports of the three bounds (``limits``: holds fixed, the nozzle's z acceleration
+    within ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves
+    free),
     none of them when the file has no hold."""
 
     check: object
@@ -152,7 +158,10 @@ def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileB
     t = np.arange(len(q)) * dt
     ideal = invert(model, q, X, dt).q_cmd
     no = np.zeros_like(hold)
-    u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel, zmove, prof.limits.max_z_accel_mm_s2 * 1e-3)
+    # Klipper caps a segment's acceleration at max_z_accel * d/|dz|: along a segment that is a cap on
+    # its z acceleration, |a_z| <= max_z_accel, on every move (the z moves and the rest alike)
+    u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel, np.ones_like(hold),
+                              prof.limits.max_z_accel_mm_s2 * 1e-3, windows=hold | zmove)
     u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel)
     u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel)
     sim = DeltaPlant.from_profile(truth or prof).simulate(t, np.stack([q, u_lim, u_planned, u_free]), hold="linear")

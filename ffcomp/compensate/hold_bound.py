@@ -36,7 +36,8 @@ import osqp
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import csc_matrix, csr_matrix
 
-from .stream import _active_set_qp
+from ..errors import SolverError
+from .stream import _active_set_qp, _osqp_solve
 
 __all__ = ["PinnedOptimum", "pinned_optimum", "response_matrix"]
 
@@ -161,6 +162,9 @@ def _z_boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, 
     if c is None:  # (a cycle or a degenerate working set) OSQP, to its tolerance
         prob = osqp.OSQP()
         prob.setup(csc_matrix(np.triu(G)), -rhs, A.tocsc(), lo, hi, verbose=False, eps_abs=1e-12,
-                   eps_rel=1e-10, max_iter=20000, polish=True)
-        c = prob.solve().x
+                   eps_rel=1e-10, max_iter=20000, polishing=True)
+        res = _osqp_solve(prob)
+        if res.info.status not in ("solved", "solved inaccurate"):
+            raise SolverError(f"hold bound: the z-acceleration QP was not solved (OSQP: {res.info.status})")
+        c = res.x
     return c
