@@ -14,13 +14,15 @@ on the profile's plant, as the fidelity bench does.
 
 Three bounds, by what the z move (more z than XY, next to an extruder-only move) may do:
 
-* ``limits``: the nozzle's z acceleration stays within the profile's ``max_z_accel`` on every sample
-  of the window (Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along a segment,
-  a cap on its z acceleration), the z move's x and y free: the best a file at the profile's limits
-  can do;
-* ``planned``: the z move's z fixed to the plan (its x and y free): the pipeline's own choice;
+* ``limits``: the nozzle's acceleration stays, per axis, within the profile's ``max_z_accel`` in z
+  (Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along a segment, a cap on its
+  z acceleration) and the output header's ``ACCEL`` in x and y, on every sample of the window: the
+  best a file at the profile's limits can do;
+* ``planned``: the z move's z fixed to the plan: the pipeline's own choice;
 * ``free``: the z move free: what a firmware whose ``max_z_accel`` let the z move carry its
   compensation could reach.
+
+In all three the acceleration in x and y stays within the header's ``ACCEL``.
 
 For each file it prints, as the fidelity bench does (lag-aligned and contour RMS as a fraction of the
 uncompensated file's), the exact commands, the written G-code and the three bounds, then the share of
@@ -57,6 +59,7 @@ from ffcomp.gcode.start import resolve_start  # noqa: E402
 from ffcomp.kinematics import forward, jacobian  # noqa: E402
 from ffcomp.model.lpv import LpvModel  # noqa: E402
 from ffcomp.pipeline.compensate_flow import CompensateOptions  # noqa: E402
+from ffcomp.pipeline.header import header_accel  # noqa: E402
 from ffcomp.pipeline.limited_moves import z_hop  # noqa: E402
 from ffcomp.pipeline.output_check import check_gcode_output  # noqa: E402
 from ffcomp.pipeline.stream_flow import inv_pre_samples  # noqa: E402
@@ -88,23 +91,23 @@ def fixed_masks(move_index: np.ndarray, moves: dict) -> tuple[np.ndarray, np.nda
 
 
 def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarray, fixed: np.ndarray,
-                  fixed_z: np.ndarray, dt: float, accel: float, z_box: np.ndarray | None = None,
-                  max_z_accel_m_s2: float = 0.0, windows: np.ndarray | None = None) -> tuple[np.ndarray, int]:
-    """The exact command with every window around ``fixed`` samples (all axes), ``fixed_z`` samples
-    (the nozzle's z only) and ``z_box`` samples (the nozzle's z acceleration within
-    ``max_z_accel_m_s2``) replaced by its optimum; the windows around ``windows`` samples if given."""
+                  fixed_z: np.ndarray, dt: float, accel: float, box_m_s2: tuple | None = None,
+                  windows: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """The exact command with every window around ``fixed`` samples (all axes) and ``fixed_z`` samples
+    (the nozzle's z only) replaced by its optimum; with ``box_m_s2`` (x, y, z) the nozzle's
+    acceleration stays within it on every sample of the windows; the windows around ``windows``
+    samples if given."""
     pr = PulseResponses(model, dt, RepairConfig(tail_s=TAIL_S))
     u = ideal.copy()
     m, N = int(round(MARGIN_S / dt)), len(q)
-    box = np.zeros(N, bool) if z_box is None else z_box
-    z_exact = forward(model.geometry, ideal)[:, 2] if box.any() else None
-    wins = pinned_clusters(fixed | fixed_z | box if windows is None else windows, int(round(GAP_S / dt)))
+    base = forward(model.geometry, ideal) if box_m_s2 is not None else None
+    wins = pinned_clusters(fixed | fixed_z if windows is None else windows, int(round(GAP_S / dt)))
     for a0, b0 in wins:
         a, b = max(a0 - m, 0), min(b0 + m, N)
         pose = X[(a0 + b0) // 2]
-        za = (box[a:b], z_exact[a:b], max_z_accel_m_s2) if box[a:b].any() else None
+        box = None if box_m_s2 is None else (np.ones(b - a, bool), base[a:b], box_m_s2)
         opt = pinned_optimum(pr.at(pose), jacobian(model.geometry, pose), fixed[a:b], (q - ideal)[a:b], dt,
-                             pin_z=fixed_z[a:b], z_accel=za, accel_m_s2=accel)
+                             pin_z=fixed_z[a:b], accel_box=box, accel_m_s2=accel)
         u[a:b] += opt.correction_m
     return u, len(wins)
 
@@ -112,8 +115,8 @@ def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarr
 @dataclass
 class FileBounds:
     """One file's runs: ``check`` (none, exact, G-code; :func:`check_gcode_output`), the number of
-    windows, and the reports of the three bounds (``limits``: holds fixed, the nozzle's z acceleration
-    within ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves
+    windows, and the reports of the three bounds (``limits``: holds fixed, the nozzle's acceleration
+    within ``ACCEL`` and ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves
     free),
     none of them when the file has no hold."""
 
@@ -159,11 +162,14 @@ def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileB
     ideal = invert(model, q, X, dt).q_cmd
     no = np.zeros_like(hold)
     # Klipper caps a segment's acceleration at max_z_accel * d/|dz|: along a segment that is a cap on
-    # its z acceleration, |a_z| <= max_z_accel, on every move (the z moves and the rest alike)
-    u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel, np.ones_like(hold),
-                              prof.limits.max_z_accel_mm_s2 * 1e-3, windows=hold | zmove)
-    u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel)
-    u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel)
+    # its z acceleration, |a_z| <= max_z_accel, on every move (the z moves and the rest alike); and
+    # at the run's ACCEL (the output's header) in x and y
+    a_xy = header_accel(prof, CompensateOptions()) * 1e-3
+    u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel,
+                              (a_xy, a_xy, prof.limits.max_z_accel_mm_s2 * 1e-3), windows=hold | zmove)
+    u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel, (a_xy, a_xy, np.inf),
+                                 windows=hold | zmove)
+    u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel, (a_xy, a_xy, np.inf), windows=hold | zmove)
     sim = DeltaPlant.from_profile(truth or prof).simulate(t, np.stack([q, u_lim, u_planned, u_free]), hold="linear")
     ext = extruding_mask(X, e, dt)
     reps = [evaluate_masked(t, X, sim.xyz_m[r], ext)[0] for r in range(4)]

@@ -144,7 +144,8 @@ def test_z_box_sits_between_z_fixed_and_z_free():
     base = np.zeros(n)  # the exact command's nozzle z: still (its second differences are zero)
     lim = 20.0  # m/s^2
     f_fixed = pinned_optimum(H, J, hold, pinned, DT, pin_z=zmove).objective
-    boxed = pinned_optimum(H, J, hold, pinned, DT, z_accel=(zmove, base, lim))
+    box = (zmove, np.c_[np.zeros((n, 2)), base], (np.inf, np.inf, lim))
+    boxed = pinned_optimum(H, J, hold, pinned, DT, accel_box=box)
     f_free = pinned_optimum(H, J, hold, pinned, DT).objective
     assert f_free <= boxed.objective * (1 + 1e-9) and boxed.objective <= f_fixed * (1 + 1e-9)
     zc = base + (boxed.correction_m @ J.T)[:, 2]
@@ -187,3 +188,19 @@ def test_layered_square_bounds_on_the_default_profile(tmp_path):
     assert lim < 0.9, lim
     assert free > 0.9, free
     assert free > lim > planned - 0.02 and g < planned + 0.02, (g, planned, lim, free)
+
+
+def test_box_on_every_axis_holds():
+    """The acceleration box bounds each finite axis of the nozzle frame on the samples it covers
+    (the rest of the window too: a pin's neighbours), and leaves the objective no lower."""
+    H, J, pin, pinned = _problem()
+    n = len(pin)
+    free = pinned_optimum(H, J, pin, pinned, DT)
+    acc_free = np.abs(np.diff(free.correction_m @ J.T, 2, axis=0)) / DT**2
+    lims = 0.3 * acc_free.max(axis=0)
+    boxed = pinned_optimum(H, J, pin, pinned, DT, accel_box=(np.ones(n, bool), np.zeros((n, 3)), lims))
+    acc = np.abs(np.diff(boxed.correction_m @ J.T, 2, axis=0)) / DT**2
+    # (the pins' own second differences are the pins', not the box's business)
+    inside = ~(pin[:-2] & pin[1:-1] & pin[2:])
+    assert (acc[inside] <= lims * (1 + 1e-6) + 1e-9).all()
+    assert boxed.objective >= free.objective * (1 - 1e-9)

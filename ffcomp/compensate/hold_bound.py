@@ -14,8 +14,9 @@ penalty on the correction's acceleration:
 window's pose, ``J = dX/dq`` there (``Y`` is the correction in the nozzle frame, the first term the
 change of the nozzle's tracking error over the window and its ringing tail), ``D2`` the second
 difference.  On a z move either the nozzle's z is fixed to the plan (``pin_z``: what the pipeline
-does) or its z acceleration is boxed within ``max_z_accel`` (``z_accel``: what the firmware
-allows); its x and y stay free.
+does) or the command's acceleration is boxed, per axis of the nozzle frame (``accel_box``: what the
+firmware allows, Klipper's ``max_z_accel`` in z and the run's ``ACCEL`` in x and y); its x and y
+stay free.
 
 Since the exact command already follows the plan, the minimum is the least tracking error any
 command under those constraints can leave, to the linearisation and to the penalty's weight
@@ -75,7 +76,7 @@ def response_matrix(H: np.ndarray, J: np.ndarray, n: int) -> np.ndarray:
 
 
 def pinned_optimum(H: np.ndarray, J: np.ndarray, pin: np.ndarray, pinned_m: np.ndarray, dt_s: float,
-                   pin_z: np.ndarray | None = None, z_accel: tuple | None = None, accel_m_s2: float = 10.0,
+                   pin_z: np.ndarray | None = None, accel_box: tuple | None = None, accel_m_s2: float = 10.0,
                    err_m: float = 1e-6) -> PinnedOptimum:
     """The correction ``D`` of least nozzle error with ``D = pinned_m`` on the pins (see the module).
 
@@ -95,12 +96,12 @@ def pinned_optimum(H: np.ndarray, J: np.ndarray, pin: np.ndarray, pinned_m: np.n
     pin_z : ndarray of bool, shape (n,), optional
         Samples where only the nozzle's z is fixed (to ``J pinned_m``'s z, at the window's pose): a z
         move the firmware runs as planned in z, with x and y free.
-    z_accel : (mask, base_z_m, limit_m_s2), optional
-        On the samples ``mask`` (n,) selects (and the second differences that touch them), the
-        nozzle's z acceleration of the whole command,
-        ``base_z_m`` (n,) (the exact command's nozzle z) plus the correction's, stays within
-        ``limit_m_s2`` (Klipper's ``max_z_accel`` on a z move): a box on second differences, solved
-        exactly by an active-set method (OSQP where it gives up).
+    accel_box : (mask, base_m, limits_m_s2), optional
+        On the samples ``mask`` (n,) selects (the second differences that touch them, but for those
+        of pinned samples alone), the nozzle's acceleration of the whole command, ``base_m`` (n, 3)
+        (the exact command's nozzle position) plus the correction's, stays within ``limits_m_s2``
+        (3,) per axis (``inf``: no bound on that axis): a box on second differences, solved exactly
+        by an active-set method (OSQP where it gives up).
     accel_m_s2, err_m : float
         The penalty on the correction's nozzle acceleration: ``accel_m_s2`` in a sample costs as
         much as ``err_m`` of nozzle error (default 10 m/s^2 per micrometre: commands up to hundreds
@@ -130,32 +131,42 @@ def pinned_optimum(H: np.ndarray, J: np.ndarray, pin: np.ndarray, pinned_m: np.n
         G[np.diag_indices_from(G)] += 1e-12 * max(float(np.mean(np.diag(G))), 1e-300)
         factor = cho_factor(G, lower=True, check_finite=False)
         y[free] = cho_solve(factor, rhs, check_finite=False)
-        if z_accel is not None:
-            y[free] = _z_boxed(y, free, fixed, G, rhs, factor, z_accel, n, dt_s)
+        if accel_box is not None:
+            y[free] = _boxed(y, free, fixed, G, rhs, factor, accel_box, n, dt_s)
     resp = A @ y
     obj = float(resp @ resp + np.sum((D2 @ y) ** 2))
     return PinnedOptimum(y.reshape(n, 3) @ np.linalg.inv(J).T, resp.reshape(-1, 3), obj)
 
 
-def _z_boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, rhs: np.ndarray, factor,
-             z_accel: tuple, n: int, dt_s: float) -> np.ndarray:
-    """The free values of ``y`` with the z-acceleration box of :func:`pinned_optimum` (``y[free]``
+def _boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, rhs: np.ndarray, factor,
+           accel_box: tuple, n: int, dt_s: float) -> np.ndarray:
+    """The free values of ``y`` with the acceleration box of :func:`pinned_optimum` (``y[free]``
     holds the unconstrained minimiser)."""
-    mask, base, lim = z_accel
-    mask, base = np.asarray(mask, bool), np.asarray(base, float)
-    if len(mask) != n or len(base) != n:
-        raise ValueError(f"z_accel's mask and base_z_m must have {n} samples")
+    mask, base, lims = accel_box
+    mask, base, lims = np.asarray(mask, bool), np.asarray(base, float), np.asarray(lims, float)
+    if len(mask) != n or base.shape != (n, 3) or lims.shape != (3,):
+        raise ValueError(f"accel_box's mask, base_m and limits_m_s2 must have shapes ({n},), ({n}, 3) and (3,)")
     # every second difference that touches a masked sample (k spans samples k, k + 1, k + 2): the
-    # firmware enters and leaves such a move at its acceleration too, not with a step of speed
+    # firmware enters and leaves such a stretch at its acceleration too, not with a step of speed
     touch = mask[:-2] | mask[1:-1] | mask[2:]
     centres = np.nonzero(touch)[0]
-    if not centres.size:
+    axes = [ax for ax in range(3) if np.isfinite(lims[ax])]
+    if not centres.size or not axes:
         return y[free]
-    rows = np.zeros((centres.size, 3 * n))
-    for r, k in enumerate(centres):
-        rows[r, [3 * k + 2, 3 * (k + 1) + 2, 3 * (k + 2) + 2]] = (1.0, -2.0, 1.0)
-    shift = rows[:, fixed] @ y[fixed] + base[centres] - 2 * base[centres + 1] + base[centres + 2]
-    room = lim * dt_s**2
+    rows = np.zeros((centres.size * len(axes), 3 * n))
+    shift = np.zeros(len(rows))
+    room = np.zeros(len(rows))
+    for j, ax in enumerate(axes):
+        for r, k in enumerate(centres):
+            rows[j * centres.size + r, [3 * k + ax, 3 * (k + 1) + ax, 3 * (k + 2) + ax]] = (1.0, -2.0, 1.0)
+        sl = slice(j * centres.size, (j + 1) * centres.size)
+        shift[sl] = base[centres, ax] - 2 * base[centres + 1, ax] + base[centres + 2, ax]
+        room[sl] = lims[ax] * dt_s**2
+    shift += rows[:, fixed] @ y[fixed]
+    live = np.any(rows[:, free] != 0, axis=1)  # (a difference of pinned samples alone is the pins')
+    rows, shift, room = rows[live], shift[live], room[live]
+    if not len(rows):
+        return y[free]
     A = csr_matrix(rows[:, free])
     lo, hi = -room - shift, room - shift
     c = _active_set_qp(y[free], A, lo, hi, lambda r: cho_solve(factor, r, check_finite=False), int(free.sum()), 1)
@@ -165,6 +176,6 @@ def _z_boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, 
                    eps_rel=1e-10, max_iter=20000, polishing=True)
         res = _osqp_solve(prob)
         if res.info.status not in ("solved", "solved inaccurate"):
-            raise SolverError(f"hold bound: the z-acceleration QP was not solved (OSQP: {res.info.status})")
+            raise SolverError(f"hold bound: the acceleration QP was not solved (OSQP: {res.info.status})")
         c = res.x
     return c
