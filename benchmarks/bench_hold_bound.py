@@ -18,9 +18,9 @@ Three bounds, by what the z move (more z than XY, next to an extruder-only move)
   (Klipper caps a segment's acceleration at ``max_z_accel * d/|dz|``: along a segment, a cap on its
   z acceleration) and the output header's ``ACCEL`` in x and y, on every sample of the window: the
   best a file at the profile's limits can do;
-* ``planned``: the z move's z fixed to the plan: the pipeline's own choice;
-* ``free``: the z move free: what a firmware whose ``max_z_accel`` let the z move carry its
-  compensation could reach.
+* ``planned``: as ``limits``, and the z move's z fixed to the plan: the pipeline's own choice;
+* ``free``: the z move free and no bound on z: what a firmware whose ``max_z_accel`` let the z move
+  carry its compensation could reach.
 
 In all three the acceleration in x and y stays within the header's ``ACCEL``.
 
@@ -167,8 +167,8 @@ def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileB
     a_xy = header_accel(prof, CompensateOptions()) * 1e-3
     u_lim, nw = bound_command(model, X, q, ideal, hold, no, dt, accel,
                               (a_xy, a_xy, prof.limits.max_z_accel_mm_s2 * 1e-3), windows=hold | zmove)
-    u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel, (a_xy, a_xy, np.inf),
-                                 windows=hold | zmove)
+    u_planned, _ = bound_command(model, X, q, ideal, hold, zmove, dt, accel,
+                                 (a_xy, a_xy, prof.limits.max_z_accel_mm_s2 * 1e-3), windows=hold | zmove)
     u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel, (a_xy, a_xy, np.inf), windows=hold | zmove)
     sim = DeltaPlant.from_profile(truth or prof).simulate(t, np.stack([q, u_lim, u_planned, u_free]), hold="linear")
     ext = extruding_mask(X, e, dt)
