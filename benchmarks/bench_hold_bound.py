@@ -61,7 +61,7 @@ from ffcomp.model.lpv import LpvModel  # noqa: E402
 from ffcomp.pipeline.compensate_flow import CompensateOptions  # noqa: E402
 from ffcomp.pipeline.header import header_accel  # noqa: E402
 from ffcomp.pipeline.limited_moves import z_hop  # noqa: E402
-from ffcomp.pipeline.output_check import check_gcode_output  # noqa: E402
+from ffcomp.pipeline.output_check import _at_rest_first, check_gcode_output  # noqa: E402
 from ffcomp.pipeline.stream_flow import inv_pre_samples  # noqa: E402
 from ffcomp.profile import default_profile, load_profile  # noqa: E402
 from ffcomp.sim.metrics import evaluate_masked, extruding_mask  # noqa: E402
@@ -116,9 +116,8 @@ def bound_command(model: LpvModel, X: np.ndarray, q: np.ndarray, ideal: np.ndarr
 class FileBounds:
     """One file's runs: ``check`` (none, exact, G-code; :func:`check_gcode_output`), the number of
     windows, and the reports of the three bounds (``limits``: holds fixed, the nozzle's acceleration
-    within ``ACCEL`` and ``max_z_accel``; ``planned``: holds and the z moves' z fixed; ``free``: holds fixed, z moves
-    free),
-    none of them when the file has no hold."""
+    within ``ACCEL`` and ``max_z_accel``; ``planned``: the same and the z moves' z fixed; ``free``:
+    holds fixed, z unbounded), none of them when the file has no hold."""
 
     check: object
     windows: int
@@ -150,9 +149,7 @@ def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileB
     moves = {mv.index: mv for mv in GcodePlan(str(src), prof, start_position_mm=start)}
     dt = float(ref.t_s[1] - ref.t_s[0])
     n_pre = inv_pre_samples(InverseConfig(), dt)
-    X = np.vstack([np.repeat(ref.xyz_m[:1], n_pre, 0), ref.xyz_m])
-    q = np.vstack([np.repeat(ref.q_m[:1], n_pre, 0), ref.q_m])
-    e = np.concatenate([np.repeat(ref.e_mm[:1], n_pre), ref.e_mm])
+    X, q, e = _at_rest_first(ref.xyz_m, ref.q_m, ref.e_mm, n_pre)
     mi = np.concatenate([np.full(n_pre, -1), ref.move_index])
     hold, zmove = fixed_masks(mi, moves)
     if not hold.any():

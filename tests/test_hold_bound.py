@@ -43,19 +43,20 @@ def _problem(n=80, seed=0):
     return H, J, pin, pinned
 
 
-def _objective(H, J, D, dt, accel=10.0, err=1e-6):
-    """The bound's objective of a carriage-frame correction D, computed without response_matrix:
-    each output channel's convolution summed over the inputs, then J."""
-    n = len(D)
-    L = H.shape[0]
-    resp = np.zeros((n + L - 1, 3))
+def _response(H, J, D):
+    """The nozzle's response to a carriage-frame correction D, without response_matrix: each output
+    channel's convolution summed over the inputs, then J."""
+    resp = np.zeros((len(D) + H.shape[0] - 1, 3))
     for o in range(3):
         for i in range(3):
             resp[:, o] += np.convolve(D[:, i], H[:, o, i])
-    r = resp @ J.T
-    Y = D @ J.T
-    pen = np.diff(Y, 2, axis=0) / dt**2 * (err / accel)
-    return float(np.sum(r**2) + np.sum(pen**2))
+    return resp @ J.T
+
+
+def _objective(H, J, D, dt, accel=10.0, err=1e-6):
+    """The bound's objective of a carriage-frame correction D (see _response)."""
+    pen = np.diff(D @ J.T, 2, axis=0) / dt**2 * (err / accel)
+    return float(np.sum(_response(H, J, D) ** 2) + np.sum(pen**2))
 
 
 def test_response_matrix_is_the_convolution():
@@ -63,13 +64,8 @@ def test_response_matrix_is_the_convolution():
     rng = np.random.default_rng(1)
     Y = rng.standard_normal((20, 3))
     A = response_matrix(H, J, 20)
-    D = Y @ np.linalg.inv(J).T
-    direct = np.zeros((20 + H.shape[0] - 1, 3))
-    for o in range(3):
-        for i in range(3):
-            direct[:, o] += np.convolve(D[:, i], H[:, o, i])
     got = (A @ Y.reshape(-1)).reshape(-1, 3)
-    np.testing.assert_allclose(got[:-1], direct @ J.T, atol=1e-12)
+    np.testing.assert_allclose(got[:-1], _response(H, J, Y @ np.linalg.inv(J).T), atol=1e-12)
 
 
 def test_no_pins_leave_the_exact_command():
@@ -112,13 +108,8 @@ def test_a_dense_solve_agrees():
             cols.append(e)
 
     def stacked(D):
-        L = H.shape[0]
-        resp = np.zeros((n + L - 1, 3))
-        for o in range(3):
-            for i in range(3):
-                resp[:, o] += np.convolve(D[:, i], H[:, o, i])
         pen = np.diff(D @ J.T, 2, axis=0) / DT**2 * 1e-7
-        return np.concatenate([(resp @ J.T).reshape(-1), pen.reshape(-1)])
+        return np.concatenate([_response(H, J, D).reshape(-1), pen.reshape(-1)])
 
     base = np.where(pin2[:, None], pinned2, 0.0)
     M = np.stack([stacked(c) for c in cols], axis=1)

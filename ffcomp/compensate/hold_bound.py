@@ -71,7 +71,7 @@ def response_matrix(H: np.ndarray, J: np.ndarray, n: int) -> np.ndarray:
     JHJi = np.einsum("ij,ljk,km->lim", J, H, np.linalg.inv(J))  # (L, 3 out, 3 in)
     T = np.zeros((n + L, 3, n, 3))
     for k in range(n):
-        T[k:k + L, :, k, :] = JHJi[:min(L, n + L - k)]
+        T[k:k + L, :, k, :] = JHJi
     return T.reshape(3 * (n + L), 3 * n)
 
 
