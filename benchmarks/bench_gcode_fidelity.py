@@ -97,6 +97,13 @@ def repair_from_args(pairs: list[str]):
     return RepairConfig(**{k: conv[str(types[k])](v) for k, v in kv.items()})
 
 
+def bench_profiles() -> dict:
+    """name -> (the profile compensated with, the plant simulated: None for the profile itself)."""
+    return {"default": (default_profile(), None),
+            "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
+                            load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
+
+
 def files(quick: bool) -> dict[str, str]:
     """The benchmark's G-code files (deterministic), name -> text."""
     layers = 2 if quick else 3
@@ -167,9 +174,7 @@ def main() -> None:
     ap.add_argument("--tol-um", type=float, default=None,
                     help="CompensateOptions.tol_um (the writer's point placement tolerance, default 5)")
     a = ap.parse_args()
-    profiles = {"default": (default_profile(), None),
-                "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
-                                load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
+    profiles = bench_profiles()
     tmp = Path(tempfile.mkdtemp(prefix="bench_fidelity_"))
     extra = {}
     if a.z_mode:

@@ -63,7 +63,6 @@ from ffcomp.pipeline.header import header_accel  # noqa: E402
 from ffcomp.pipeline.limited_moves import z_hop  # noqa: E402
 from ffcomp.pipeline.output_check import _at_rest_first, check_gcode_output  # noqa: E402
 from ffcomp.pipeline.stream_flow import inv_pre_samples  # noqa: E402
-from ffcomp.profile import default_profile, load_profile  # noqa: E402
 from ffcomp.sim.metrics import evaluate_masked, extruding_mask  # noqa: E402
 from ffcomp.sim.plant import DeltaPlant  # noqa: E402
 
@@ -192,9 +191,7 @@ def main() -> None:
     ap.add_argument("--accel", type=float, default=10.0,
                     help="command acceleration (m/s^2) that costs as much as 1 um of error (default 10)")
     a = ap.parse_args()
-    profiles = {"default": (default_profile(), None),
-                "other_delta": (load_profile(ROOT / "samples/profiles/other_delta.toml"),
-                                load_profile(ROOT / "samples/profiles/other_delta_truth.toml"))}
+    profiles = fid.bench_profiles()
     tmp = Path(tempfile.mkdtemp(prefix="bench_hold_bound_"))
     for pname, (prof, truth) in profiles.items():
         if pname not in a.profiles.split(","):

@@ -164,21 +164,26 @@ def _bench():
     return mod
 
 
-def test_layered_square_bounds_on_the_default_profile(tmp_path):
-    """README, *The holds' bound*: on the default profile's layered square (here the bench's quick
-    two layers) no G-code at the profile's limits keeps 90 % of the exact commands' lag reduction
-    (the bound: 0.84 on three layers), the written G-code leaves more than each bound, and with the
-    layer change's z move free the bound keeps more than 90 % (0.95)."""
-    from ffcomp.profile import default_profile
-
+@pytest.mark.parametrize("which", ["default", "other_delta"])
+def test_layered_square_bounds_on_both_profiles(tmp_path, which):
+    """README, *The holds' bound*, on the bench's quick layered square (two layers; the README's three
+    read 0.83 / 0.76 / 0.93 default, 0.90 / 0.87 / 0.94 other_delta for limits / planned / free): the
+    bounds come in order (z free >= the profile's limits >= z as planned), the written G-code keeps
+    no more than the planned bound, the free one keeps more than 90 %; on the default profile no
+    G-code at its limits keeps 90 % (0.87 on two layers), on other_delta the limits bound sits near it
+    (0.92)."""
     b = _bench()
+    prof, truth = b.fid.bench_profiles()[which]
     text = b.fid.files(quick=True)["square 60 mm, 150 mm/s, layers"]
-    fb = b.file_bounds(default_profile(), None, text, tmp_path)
+    fb = b.file_bounds(prof, truth, text, tmp_path)
     assert fb.windows >= 2
     lim, planned, free, g = (fb.kept(r) for r in ("limits", "planned", "free", "gcode"))
-    assert lim < 0.9, lim
     assert free > 0.9, free
-    assert free > lim > planned - 0.02 and g < planned + 0.02, (g, planned, lim, free)
+    assert free > lim >= planned - 0.005 and g < planned + 0.02, (g, planned, lim, free)
+    if which == "default":
+        assert lim < 0.9, lim
+    else:
+        assert 0.85 < lim < 0.97, lim
 
 
 def test_box_on_every_axis_holds():

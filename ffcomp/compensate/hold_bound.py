@@ -118,7 +118,8 @@ def pinned_optimum(H: np.ndarray, J: np.ndarray, pin: np.ndarray, pinned_m: np.n
         raise ValueError(f"accel_m_s2 and err_m must be positive, got {accel_m_s2} and {err_m}")
     J = np.asarray(J, float)
     A = response_matrix(H, J, n)
-    D2 = np.kron(np.diff(np.eye(n), 2, axis=0), np.eye(3)) * (err_m / accel_m_s2 / dt_s**2)
+    S2 = np.kron(np.diff(np.eye(n), 2, axis=0), np.eye(3))  # second differences, row 3 k + axis
+    D2 = S2 * (err_m / accel_m_s2 / dt_s**2)
     fixed = np.repeat(pin, 3)
     fixed[2::3] |= pin_z
     y = np.zeros(3 * n)  # the correction in the nozzle frame
@@ -132,37 +133,29 @@ def pinned_optimum(H: np.ndarray, J: np.ndarray, pin: np.ndarray, pinned_m: np.n
         factor = cho_factor(G, lower=True, check_finite=False)
         y[free] = cho_solve(factor, rhs, check_finite=False)
         if accel_box is not None:
-            y[free] = _boxed(y, free, fixed, G, rhs, factor, accel_box, n, dt_s)
+            y[free] = _boxed(y, free, fixed, G, rhs, factor, accel_box, S2, dt_s)
     resp = A @ y
     obj = float(resp @ resp + np.sum((D2 @ y) ** 2))
     return PinnedOptimum(y.reshape(n, 3) @ np.linalg.inv(J).T, resp.reshape(-1, 3), obj)
 
 
 def _boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, rhs: np.ndarray, factor,
-           accel_box: tuple, n: int, dt_s: float) -> np.ndarray:
+           accel_box: tuple, S2: np.ndarray, dt_s: float) -> np.ndarray:
     """The free values of ``y`` with the acceleration box of :func:`pinned_optimum` (``y[free]``
-    holds the unconstrained minimiser)."""
+    holds the unconstrained minimiser; ``S2`` the second differences, row ``3 k + axis``)."""
+    n = len(y) // 3
     mask, base, lims = accel_box
     mask, base, lims = np.asarray(mask, bool), np.asarray(base, float), np.asarray(lims, float)
     if len(mask) != n or base.shape != (n, 3) or lims.shape != (3,):
         raise ValueError(f"accel_box's mask, base_m and limits_m_s2 must have shapes ({n},), ({n}, 3) and (3,)")
     # every second difference that touches a masked sample (k spans samples k, k + 1, k + 2): the
     # firmware enters and leaves such a stretch at its acceleration too, not with a step of speed
-    touch = mask[:-2] | mask[1:-1] | mask[2:]
-    centres = np.nonzero(touch)[0]
-    axes = [ax for ax in range(3) if np.isfinite(lims[ax])]
-    if not centres.size or not axes:
-        return y[free]
-    rows = np.zeros((centres.size * len(axes), 3 * n))
-    shift = np.zeros(len(rows))
-    room = np.zeros(len(rows))
-    for j, ax in enumerate(axes):
-        for r, k in enumerate(centres):
-            rows[j * centres.size + r, [3 * k + ax, 3 * (k + 1) + ax, 3 * (k + 2) + ax]] = (1.0, -2.0, 1.0)
-        sl = slice(j * centres.size, (j + 1) * centres.size)
-        shift[sl] = base[centres, ax] - 2 * base[centres + 1, ax] + base[centres + 2, ax]
-        room[sl] = lims[ax] * dt_s**2
-    shift += rows[:, fixed] @ y[fixed]
+    centres = np.nonzero(mask[:-2] | mask[1:-1] | mask[2:])[0]
+    axes = np.nonzero(np.isfinite(lims))[0]
+    idx = (3 * centres[None, :] + axes[:, None]).reshape(-1)
+    rows = S2[idx]
+    shift = rows @ base.reshape(-1) + rows[:, fixed] @ y[fixed]
+    room = np.repeat(lims[axes], centres.size) * dt_s**2
     live = np.any(rows[:, free] != 0, axis=1)  # (a difference of pinned samples alone is the pins')
     rows, shift, room = rows[live], shift[live], room[live]
     if not len(rows):
