@@ -26,7 +26,8 @@ In all three the acceleration in x and y stays within the header's ``ACCEL``.
 
 For each file it prints, as the fidelity bench does (lag-aligned and contour RMS as a fraction of the
 uncompensated file's), the exact commands, the written G-code and the three bounds, then the share of
-the exact commands' reduction each keeps.  A ``limits`` share below 0.90 says the fidelity bench's
+the exact commands' reduction each keeps, over the whole file and over the samples where the plan
+extrudes while it moves (what marks the part).  A ``limits`` share below 0.90 says the fidelity bench's
 target is out of reach for that file whatever the pipeline does, to this model's linearisation.
 """
 
@@ -124,6 +125,9 @@ class FileBounds:
     limits: object = None
     planned: object = None
     free: object = None
+    #: lag-aligned and contour RMS (um) of ``none`` and the bounds over the samples where the plan
+    #: extrudes while it moves (what marks the part)
+    extruding: dict | None = None
 
     def ratio(self, run: str, metric: str = "lag") -> float:
         """RMS of ``run`` (``exact``, ``gcode`` or a bound) over the uncompensated file's."""
@@ -134,6 +138,18 @@ class FileBounds:
     def kept(self, run: str, metric: str = "lag") -> float:
         """Share of the exact commands' reduction ``run`` keeps."""
         return (1 - self.ratio(run, metric)) / (1 - self.ratio("exact", metric))
+
+    def kept_extruding(self, run: str, metric: str = "lag") -> float:
+        """:meth:`kept` over the extruding samples only (NaN when the file does not extrude)."""
+        ext = self.check.extruding
+        if not ext:
+            return float("nan")
+        i = 0 if metric == "lag" else 1
+        if run in ("exact", "gcode"):
+            return self.check.kept_extruding(metric) if run == "gcode" else 1.0
+        r_run = self.extruding[run][i] / self.extruding["none"][i]
+        r_exact = ext["exact"][i] / ext["none"][i]
+        return (1 - r_run) / (1 - r_exact)
 
 
 def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileBounds:
@@ -168,8 +184,9 @@ def file_bounds(prof, truth, text: str, tmp: Path, accel: float = 10.0) -> FileB
     u_free, _ = bound_command(model, X, q, ideal, hold, no, dt, accel, (a_xy, a_xy, np.inf), windows=hold | zmove)
     sim = DeltaPlant.from_profile(truth or prof).simulate(t, np.stack([q, u_lim, u_planned, u_free]), hold="linear")
     ext = extruding_mask(X, e, dt)
-    reps = [evaluate_masked(t, X, sim.xyz_m[r], ext)[0] for r in range(4)]
-    return FileBounds(c, nw, *reps)
+    reps = [evaluate_masked(t, X, sim.xyz_m[r], ext) for r in range(4)]
+    extruding = {k: reps[r][1] for r, k in enumerate(("none",) + BOUNDS)} if ext.any() else None
+    return FileBounds(c, nw, *(r[0] for r in reps), extruding=extruding)
 
 
 BOUNDS = ("limits", "planned", "free")
@@ -181,6 +198,10 @@ def _cells(fb: FileBounds, metric: str) -> str:
 
 def _kept(fb: FileBounds, metric: str) -> str:
     return " / ".join(f"{fb.kept(r, metric):.2f}" for r in ("gcode",) + BOUNDS)
+
+
+def _kept_ext(fb: FileBounds, metric: str) -> str:
+    return " / ".join(f"{fb.kept_extruding(r, metric):.2f}" for r in ("gcode",) + BOUNDS)
 
 
 def main() -> None:
@@ -199,8 +220,9 @@ def main() -> None:
         print(f"\n### {pname}\n")
         print("| file | windows | exact lag | G-code lag | bound lag: profile's limits / z as planned / z free "
               "| exact contour | G-code contour | bound contour: limits / planned / free "
-              "| kept lag: G-code / bounds | kept contour: G-code / bounds |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+              "| kept lag: G-code / bounds | kept contour: G-code / bounds "
+              "| kept lag, extruding: G-code / bounds | kept contour, extruding: G-code / bounds |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for name, text in fid.files(a.quick).items():
             if a.only and a.only not in name:
                 continue
@@ -208,12 +230,14 @@ def main() -> None:
             if not fb.windows:
                 print(f"| {name} | 0 | {fb.ratio('exact'):.3f} | {fb.ratio('gcode'):.3f} | (no holds) "
                       f"| {fb.ratio('exact', 'contour'):.3f} | {fb.ratio('gcode', 'contour'):.3f} | | "
-                      f"{fb.kept('gcode'):.2f} | {fb.kept('gcode', 'contour'):.2f} |", flush=True)
+                      f"{fb.kept('gcode'):.2f} | {fb.kept('gcode', 'contour'):.2f} "
+                      f"| {fb.kept_extruding('gcode'):.2f} | {fb.kept_extruding('gcode', 'contour'):.2f} |", flush=True)
                 continue
 
             print(f"| {name} | {fb.windows} | {fb.ratio('exact'):.3f} | {fb.ratio('gcode'):.3f} | {_cells(fb, 'lag')} "
                   f"| {fb.ratio('exact', 'contour'):.3f} | {fb.ratio('gcode', 'contour'):.3f} "
-                  f"| {_cells(fb, 'contour')} | {_kept(fb, 'lag')} | {_kept(fb, 'contour')} |", flush=True)
+                  f"| {_cells(fb, 'contour')} | {_kept(fb, 'lag')} | {_kept(fb, 'contour')} "
+                  f"| {_kept_ext(fb, 'lag')} | {_kept_ext(fb, 'contour')} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -921,6 +921,77 @@ def test_a_chunk_that_ends_just_before_a_stop_keeps_the_clock(tmp_path, monkeypa
         assert drift_ms() - uncut > 0.1  # the case: +0.176 against -0.043 ms
 
 
+#: a z-hop of a PrusaSlicer gyroid at 0.1 mm layers (the slicer sweep of ``docs/gcode_clock.md``): the
+#: line into the retraction, the lift at max_z_accel into its travel, the descent and the unretraction
+GYROID_HOP = """G90
+M82
+M204 P3000
+G92 E1.9
+G1 X8.848 Y8.966 Z16.5 F12000
+G4 P200
+G1 F6000
+G1 X8.858 Y9.025 E2.05976
+G1 X9.025 Y9.025 E2.06273
+G1 X9.025 Y6.621 E2.10557
+M204 P3000
+G1 E1.30557 F2100
+G92 E0
+G1 Z16.7 F12000
+G1 X3.097 Y9.025
+G1 Z16.5
+G1 E.8 F2100
+M204 P4000
+G1 F6000
+G1 X.526 Y9.025 E.84581
+G1 X.526 Y3.025 E.94581
+G1 X6.526 Y3.025 E1.04581
+"""
+
+
+@pytest.mark.parametrize("after", [2, 4])
+def test_a_chunk_cut_at_a_lifts_corner_keeps_its_tail_together(tmp_path, monkeypatch, after):
+    """The pinned lift of a z-hop runs into its travel at the plan's corner speed, and the writer
+    lengthens the segment into that corner (``plan_clock.corner_tail``).  Where the pipeline's chunk
+    ended a few samples into the travel, the writer held the travel back with the lift's last sample
+    only (``writer.CARRY_SAMPLES``): the corner's tail had one sample, the lift ended on a 3 um
+    segment, Klipper's centripetal rule slowed the corner, and the lift's braking ran +0.31 ms late
+    on other_delta (the gyroid's whole file: +0.317 ms, its largest drift).  The writer now holds
+    back the lift's last ``writer.CARRY_TAIL_SAMPLES`` samples too: every cut keeps the uncut clock."""
+    from ffcomp.gcode import writer
+    from ffcomp.gcode.planner import GcodePlan
+
+    src = tmp_path / "lift.gcode"
+    src.write_text(GYROID_HOP)
+    prof = load_profile(OTHER)
+    lift = next(m for m in GcodePlan(str(src), prof) if m.lineno == 14)
+    cut_at = [None]
+    feed = writer.GcodeWriter.feed
+
+    def cut_feed(self, k0, xyz, e, mi, ln, dense=None, k_plan=None, plan_mm=None, t_shift=None):
+        c = np.nonzero(k_plan == cut_at[0])[0] if k_plan is not None and cut_at[0] is not None else []
+        if len(c) and c[0] > 0:
+            c = int(c[0])
+            for k, s in [(k0, slice(0, c)), (k0 + c, slice(c, None))]:
+                feed(self, k, xyz[s], e[s], mi[s], ln[s], *(None if x is None else x[s]
+                                                            for x in (dense, k_plan, plan_mm, t_shift)))
+            return None
+        return feed(self, k0, xyz, e, mi, ln, dense, k_plan, plan_mm, t_shift)
+
+    monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
+
+    def drift_ms() -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    uncut = drift_ms()
+    assert abs(uncut) < 0.1
+    cut_at[0] = int(np.floor(lift.t_end_s * 1000)) + after
+    assert abs(drift_ms() - uncut) < 0.005, uncut
+    monkeypatch.setattr(writer, "CARRY_TAIL_SAMPLES", 0)
+    assert drift_ms() - uncut > 0.2  # the case: +0.308 against +0.029 ms
+
+
 @pytest.mark.parametrize("text, before_ms", [
     # a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s
     ("G90\nM83\nG28\nG1 X-0.146 Y2.773 Z5.060 F6033\nG1 E0.8 F2100\nG1 Z8.987 F10437\nG1 X11.359 Y37.107 F2089\n"

@@ -49,6 +49,7 @@ from .holds import merged_ramp_holds, merged_rest_holds, merged_wet_holds, settl
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import (
+    CORNER_LEAD_MAX_SAMPLES,
     REST_POINT_NEAR_MM,
     corner_lead,
     corner_tail,
@@ -327,6 +328,8 @@ class GcodeWriter:
         cut = _run_start_cut(mi, n)
         if cut == n and n > CARRY_SAMPLES and self._corner_ahead(args, n - 1):
             cut = _run_start_cut(mi, n - CARRY_SAMPLES)
+        if 0 < cut and self._tail_ahead(args, cut - 1):
+            cut = _run_start_cut(mi, max(cut - CARRY_TAIL_SAMPLES, 0))
         if cut > 0 and self._rest_ahead(args, cut - 1):
             cut = max(cut - CARRY_REST_SAMPLES, 0)
             if cut > 0 and mi[cut] != mi[cut - 1]:
@@ -351,6 +354,19 @@ class GcodeWriter:
             return False
         nxt = self.moves.get(mv.index + 1)
         return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + CARRY_SAMPLES) * self.dt
+
+    def _tail_ahead(self, args: tuple, i: int) -> bool:
+        """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) follows the plan in a planned move
+        that ends in motion, into another move, within :data:`CARRY_TAIL_SAMPLES` samples after it:
+        a cut there would leave :func:`~ffcomp.gcode.plan_clock.corner_tail` too few of the move's
+        last samples to lengthen the segment into the corner."""
+        mv, k = self._planned_at(args, i)
+        plan_mm = args[7]
+        if (mv is None or mv.kind != MOVE or mv.end_v_mm_s <= REST_V_MM_S or plan_mm is None
+                or float(np.max(np.abs(args[1][i] - plan_mm[i]))) >= 1e-3):
+            return False
+        nxt = self.moves.get(mv.index + 1)
+        return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + 1 + CARRY_TAIL_SAMPLES) * self.dt
 
     def _rest_ahead(self, args: tuple, i: int) -> bool:
         """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
@@ -932,6 +948,13 @@ class GcodeWriter:
 #: on other_delta's sample files, 16 moved other runs' ends across the cut and made new 0.3 ms errors);
 #: and this many of its last samples when the last one's move turns into the next within as many after
 CARRY_SAMPLES = 5
+
+#: :meth:`GcodeWriter.feed` holds back this many more samples where a cut would fall within as many
+#: samples before a corner of the plan that the command follows (a pinned lift into its travel): the
+#: corner's tail (``plan_clock.corner_tail`` looks at up to ``CORNER_LEAD_MAX_SAMPLES`` samples) is
+#: written in one chunk (a 0.1 mm gyroid on other_delta, cut one sample before a lift's corner: a
+#: 3 um last segment, +0.32 ms)
+CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last this-many samples when the plan comes to rest
 #: within as many samples after them: the segments written before a chunk's end are timed as if the
