@@ -839,6 +839,26 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
     assert drift_ms() > 0.3  # the case: +0.42 ms
 
 
+def _cut_chunks_at(monkeypatch, cut_at: list) -> None:
+    """Make ``GcodeWriter.feed`` cut the chunk that holds plan sample ``cut_at[0]`` (None: no cut)
+    in two there, as the pipeline's own chunks may fall."""
+    from ffcomp.gcode import writer
+
+    feed = writer.GcodeWriter.feed
+
+    def cut_feed(self, k0, xyz, e, mi, ln, dense=None, k_plan=None, plan_mm=None, t_shift=None):
+        c = np.nonzero(k_plan == cut_at[0])[0] if k_plan is not None and cut_at[0] is not None else []
+        if len(c) and c[0] > 0:
+            c = int(c[0])
+            for k, s in [(k0, slice(0, c)), (k0 + c, slice(c, None))]:
+                feed(self, k, xyz[s], e[s], mi[s], ln[s], *(None if x is None else x[s]
+                                                            for x in (dense, k_plan, plan_mm, t_shift)))
+            return None
+        return feed(self, k0, xyz, e, mi, ln, dense, k_plan, plan_mm, t_shift)
+
+    monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
+
+
 #: a z-hop of the PrusaSlicer plate (``make_samples.py --large``: its lines 44264-44285, retraction,
 #: lift, travel, descent, unretraction and infill, after a header that stands the printer where
 #: they start, at the plate's acceleration: M204 P5000 R5000 T7000)
@@ -892,20 +912,7 @@ def test_a_chunk_that_ends_just_before_a_stop_keeps_the_clock(tmp_path, monkeypa
     prof = default_profile()
     descent = next(m for m in GcodePlan(str(src), prof) if m.lineno == 12)
     cut_at = [None]
-    feed = writer.GcodeWriter.feed
-
-    def cut_feed(self, k0, xyz, e, mi, ln, dense=None, k_plan=None, plan_mm=None, t_shift=None):
-        c = np.nonzero(k_plan == cut_at[0])[0] if k_plan is not None and cut_at[0] is not None else []
-        if len(c) and c[0] > 0:
-            c = int(c[0])
-            part = [(k0, slice(0, c)), (k0 + c, slice(c, None))]
-            for k, s in part:
-                feed(self, k, xyz[s], e[s], mi[s], ln[s], *(None if x is None else x[s]
-                                                            for x in (dense, k_plan, plan_mm, t_shift)))
-            return None
-        return feed(self, k0, xyz, e, mi, ln, dense, k_plan, plan_mm, t_shift)
-
-    monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
+    _cut_chunks_at(monkeypatch, cut_at)
 
     def drift_ms() -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
@@ -965,19 +972,7 @@ def test_a_chunk_cut_at_a_lifts_corner_keeps_its_tail_together(tmp_path, monkeyp
     prof = load_profile(OTHER)
     lift = next(m for m in GcodePlan(str(src), prof) if m.lineno == 14)
     cut_at = [None]
-    feed = writer.GcodeWriter.feed
-
-    def cut_feed(self, k0, xyz, e, mi, ln, dense=None, k_plan=None, plan_mm=None, t_shift=None):
-        c = np.nonzero(k_plan == cut_at[0])[0] if k_plan is not None and cut_at[0] is not None else []
-        if len(c) and c[0] > 0:
-            c = int(c[0])
-            for k, s in [(k0, slice(0, c)), (k0 + c, slice(c, None))]:
-                feed(self, k, xyz[s], e[s], mi[s], ln[s], *(None if x is None else x[s]
-                                                            for x in (dense, k_plan, plan_mm, t_shift)))
-            return None
-        return feed(self, k0, xyz, e, mi, ln, dense, k_plan, plan_mm, t_shift)
-
-    monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
+    _cut_chunks_at(monkeypatch, cut_at)
 
     def drift_ms() -> float:
         s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
