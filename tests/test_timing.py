@@ -1196,7 +1196,7 @@ def test_a_chunk_that_ends_on_a_corner_holds_back_the_moves_end(tmp_path, before
     moves = {m.index: m for m in GcodePlan(str(src), load_profile(OTHER))}
     dt = 1e-3
     fake = SimpleNamespace(moves=moves, dt=dt)
-    for name in ("_planned_at", "_corner_ahead", "_rest_ahead"):
+    for name in ("_planned_at", "_corner_ahead", "_tail_ahead", "_rest_ahead"):
         setattr(fake, name, getattr(writer.GcodeWriter, name).__get__(fake))
 
     def cut_of(mv) -> int:
