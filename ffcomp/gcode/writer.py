@@ -319,6 +319,10 @@ class GcodeWriter:
           :data:`CARRY_SAMPLES` samples after it, the last :data:`CARRY_SAMPLES` samples wait (the
           rule above again at the new cut): the corner is written in one chunk (a user's tower
           on other_delta, cut right at a layer change's lift: -0.28 ms, now on time).
+        * Where the cut so far falls within :data:`CARRY_TAIL_SAMPLES` samples before a corner of the
+          plan that the command follows (a pinned lift into its travel), that many more samples
+          wait, so that ``plan_clock.corner_tail`` sees the move's end whole (the first rule again
+          at the new cut).
         * Where the plan then comes to rest within :data:`CARRY_REST_SAMPLES` samples after the last
           sample written, that many more samples wait, so that the segments before the stop are
           timed knowing it (and the rule above holds at the new cut).
@@ -952,8 +956,9 @@ CARRY_SAMPLES = 5
 #: :meth:`GcodeWriter.feed` holds back this many more samples where a cut would fall within as many
 #: samples before a corner of the plan that the command follows (a pinned lift into its travel): the
 #: corner's tail (``plan_clock.corner_tail`` looks at up to ``CORNER_LEAD_MAX_SAMPLES`` samples) is
-#: written in one chunk (a 0.1 mm gyroid on other_delta, cut one sample before a lift's corner: a
-#: 3 um last segment, +0.32 ms)
+#: written in one chunk (a 0.1 mm gyroid on other_delta, whose chunk ended just after a pinned lift's
+#: travel began: the travel waited with the lift's last sample alone, the lift ended on a 3 um
+#: segment, +0.32 ms)
 CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last this-many samples when the plan comes to rest
