@@ -144,9 +144,11 @@ class FileBounds:
         ext = self.check.extruding
         if not ext:
             return float("nan")
+        if run == "exact":
+            return 1.0
+        if run == "gcode":
+            return self.check.kept_extruding(metric)
         i = 0 if metric == "lag" else 1
-        if run in ("exact", "gcode"):
-            return self.check.kept_extruding(metric) if run == "gcode" else 1.0
         r_run = self.extruding[run][i] / self.extruding["none"][i]
         r_exact = ext["exact"][i] / ext["none"][i]
         return (1 - r_run) / (1 - r_exact)

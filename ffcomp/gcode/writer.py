@@ -350,27 +350,26 @@ class GcodeWriter:
             return None, -1
         return self.moves.get(int(args[3][i])), int(k_plan[i])
 
-    def _corner_ahead(self, args: tuple, i: int) -> bool:
+    def _corner_ahead(self, args: tuple, i: int, samples: int | None = None) -> bool:
         """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) is in a planned move that ends in
-        motion, into another move, within :data:`CARRY_SAMPLES` samples after it."""
+        motion, into another move, within ``samples`` (default :data:`CARRY_SAMPLES`) samples after it."""
+        samples = CARRY_SAMPLES if samples is None else samples
         mv, k = self._planned_at(args, i)
         if mv is None or mv.kind != MOVE or mv.end_v_mm_s <= REST_V_MM_S:
             return False
         nxt = self.moves.get(mv.index + 1)
-        return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + CARRY_SAMPLES) * self.dt
+        return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + samples) * self.dt
 
     def _tail_ahead(self, args: tuple, i: int) -> bool:
-        """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) follows the plan in a planned move
-        that ends in motion, into another move, within :data:`CARRY_TAIL_SAMPLES` samples after it:
-        a cut there would leave :func:`~ffcomp.gcode.plan_clock.corner_tail` too few of the move's
-        last samples to lengthen the segment into the corner."""
-        mv, k = self._planned_at(args, i)
+        """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) follows the plan (within
+        :data:`ON_PLAN_MM`) in a planned move that ends in motion, into another move, within
+        :data:`CARRY_TAIL_SAMPLES` samples after it: a cut there would leave
+        :func:`~ffcomp.gcode.plan_clock.corner_tail` too few of the move's last samples to lengthen
+        the segment into the corner."""
         plan_mm = args[7]
-        if (mv is None or mv.kind != MOVE or mv.end_v_mm_s <= REST_V_MM_S or plan_mm is None
-                or float(np.max(np.abs(args[1][i] - plan_mm[i]))) >= 1e-3):
+        if plan_mm is None or float(np.max(np.abs(args[1][i] - plan_mm[i]))) >= ON_PLAN_MM:
             return False
-        nxt = self.moves.get(mv.index + 1)
-        return nxt is not None and nxt.kind == MOVE and mv.t_end_s < (k + 1 + CARRY_TAIL_SAMPLES) * self.dt
+        return self._corner_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
 
     def _rest_ahead(self, args: tuple, i: int) -> bool:
         """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
@@ -412,7 +411,7 @@ class GcodeWriter:
             runs.append(_Run(a, b, mi, mv, mv.kind if mv is not None else MOVE, ln))
         on_plan = None
         if k_plan is not None and plan_mm is not None:
-            on_plan = max_abs3(xyz_mm - plan_mm) < 1e-3
+            on_plan = max_abs3(xyz_mm - plan_mm) < ON_PLAN_MM
         chunk = self._plan_chunk(k0, xyz_mm, e_mm, runs, dense, k_plan, on_plan, t_shift)
         seg_base = []
         for r, run in enumerate(runs):
@@ -946,6 +945,9 @@ class GcodeWriter:
         self.flush_samples()
         self.flush_lines(1 << 62)
 
+
+#: a sample within this distance of the plan's nozzle position (every axis) follows the plan, mm
+ON_PLAN_MM = 1e-3
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last run when it starts within this many samples of
 #: the chunk's end (:func:`~ffcomp.gcode.plan_clock.corner_lead` needs at least 4 of a run's samples;
