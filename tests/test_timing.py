@@ -822,7 +822,8 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
     two samples before a chunk's end, so the writer saw too little of it to move its first point
     out of the corner (``plan_clock.corner_lead``): a 1.4 um first segment, whose junction Klipper
     slows to a crawl, and the lift ran 0.42 ms late.  The writer holds such a run back for the next
-    chunk (``writer.CARRY_SAMPLES``)."""
+    chunk (``writer.CARRY_SAMPLES``; the lift also changes the extrusion ratio, so the later rule of
+    ``writer.CARRY_FREE_SAMPLES`` holds it back too: the case is checked without that rule)."""
     from ffcomp.gcode import writer
 
     src = tmp_path / "cyl.gcode"
@@ -836,6 +837,7 @@ def test_a_lift_that_starts_at_a_chunks_end_leaves_its_corner_on_the_clock(tmp_p
 
     assert drift_ms() < 0.2  # +0.12 ms
     monkeypatch.setattr(writer, "CARRY_SAMPLES", 0)
+    monkeypatch.setattr(writer.GcodeWriter, "_turn_ahead", lambda self, *a: False)
     assert drift_ms() > 0.3  # the case: +0.42 ms
 
 
@@ -925,6 +927,9 @@ def test_a_chunk_that_ends_just_before_a_stop_keeps_the_clock(tmp_path, monkeypa
     assert abs(drift_ms() - uncut) < 0.005, uncut
     if back == 0:
         monkeypatch.setattr(writer, "CARRY_REST_SAMPLES", 0)
+        # (the descent starts on the travel's turn within writer.CARRY_FREE_SAMPLES of this cut, so
+        # that later rule holds it back too: the case is checked without it)
+        monkeypatch.setattr(writer.GcodeWriter, "_turn_ahead", lambda self, *a: False)
         assert drift_ms() - uncut > 0.1  # the case: +0.176 against -0.043 ms
 
 
@@ -987,11 +992,16 @@ def test_a_chunk_cut_at_a_lifts_corner_keeps_its_tail_together(tmp_path, monkeyp
     assert drift_ms() - uncut > 0.2  # the case: +0.308 against +0.029 ms
 
 
+#: a random file: a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s,
+#: then on up while retracting (the extruder's junction rule turns the plan at 4.7 mm/s there)
+RETRACTING_LIFT = ("G90\nM83\nG28\nG1 X-0.146 Y2.773 Z5.060 F6033\nG1 E0.8 F2100\nG1 Z8.987 F10437\n"
+                   "G1 X11.359 Y37.107 F2089\nG1 X-5.246 Y20.106 Z9.675 F9782\nG1 X-0.045 Y0.528 Z10.591 F4650\n"
+                   "G1 X-6.532 Y25.769 Z12.552 F7027\nG1 Z13.928 F7619\nG1 Z16.684 E-0.5895 F6638\n")
+
+
 @pytest.mark.parametrize("text, before_ms", [
     # a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s
-    ("G90\nM83\nG28\nG1 X-0.146 Y2.773 Z5.060 F6033\nG1 E0.8 F2100\nG1 Z8.987 F10437\nG1 X11.359 Y37.107 F2089\n"
-     "G1 X-5.246 Y20.106 Z9.675 F9782\nG1 X-0.045 Y0.528 Z10.591 F4650\nG1 X-6.532 Y25.769 Z12.552 F7027\n"
-     "G1 Z13.928 F7619\nG1 Z16.684 E-0.5895 F6638\n", 0.689),
+    (RETRACTING_LIFT, 0.689),
     # a slow travel after a retraction into a lift
     ("G90\nM83\nG28\nG1 X-13.417 Y7.069 Z3.337 F10273\nG1 E-0.8 F2100\nG1 X-12.078 Y24.036 F2490\n"
      "G1 Z6.434 F6241\nG1 Z8.399 F2122\nG1 E-0.8 F2100\nG1 Z10.162 F2031\nG1 X-30.831 Y23.437 Z11.250 F10284\n"
@@ -1012,6 +1022,110 @@ def test_a_free_corner_into_a_steep_move_keeps_the_clock(tmp_path, monkeypatch, 
     monkeypatch.setattr(GcodeWriter, "_free_corner", lambda self, *a: None)
     before, _ = _random_file_drift(tmp_path, text, prof)
     assert abs(before) > 0.45 and abs(before) == pytest.approx(before_ms, abs=0.05)  # the case
+
+
+def test_a_chunk_cut_near_a_free_corner_or_a_change_of_ratio_keeps_the_clock(tmp_path, monkeypatch):
+    """``RETRACTING_LIFT`` on other_delta with the pipeline's chunk cut (``_cut_chunks_at``) near its
+    last two corners: the travel's free turn into the lift, and the lift's change of extrusion ratio
+    where it goes on up retracting (a scan of every fifth cut: 18 of 995 cuts beyond 0.05 ms).
+
+    * 4 samples past the turn: the writer held the lift back with the travel's last sample alone,
+      ``plan_clock.free_corner`` had no samples to drop, the corner was written as 1 ms chords
+      (+1.0 ms).
+    * 11 samples past the change of ratio: the first chunk's part of the ramp ended on a slow feed
+      the lift at ``max_z_accel`` never made up (+0.56 ms).
+    * 16 samples past it: each chunk evened its own part of the retraction, and the junction at the
+      cut stepped the ratio by 0.041 (Klipper: 24 mm/s in a 50 mm/s ramp, +5.3 ms).
+
+    Now a run that starts on such a corner within ``writer.CARRY_FREE_SAMPLES`` samples of the cut
+    waits with the run before's last ``CARRY_TAIL_SAMPLES``, and a chunk's first group ramps from
+    the last chunk's ratio (``extrusion.limit_ratio_steps``'s ``prev``)."""
+    from ffcomp.gcode import writer
+    from ffcomp.gcode.extrusion import by_length
+    from ffcomp.gcode.planner import GcodePlan
+
+    src = tmp_path / "lift.gcode"
+    src.write_text(RETRACTING_LIFT)
+    prof = load_profile(OTHER)
+    moves = {m.lineno: m for m in GcodePlan(str(src), prof)}
+    turn, ratio = (int(np.floor(moves[ln].t_start_s * 1000)) for ln in (11, 12))
+    cut_at = [None]
+    _cut_chunks_at(monkeypatch, cut_at)
+
+    def drift_ms(at) -> float:
+        cut_at[0] = at
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    uncut = drift_ms(None)
+    assert abs(uncut) < 0.1
+    cuts = (turn + 4, ratio + 11, ratio + 16)
+    for at in cuts:
+        assert abs(drift_ms(at) - uncut) < 0.15, at
+    monkeypatch.setattr(writer.GcodeWriter, "_turn_ahead", lambda self, *a: False)
+    assert drift_ms(cuts[0]) - uncut > 0.6  # the cases: +1.02 and +0.56 ms
+    assert drift_ms(cuts[1]) - uncut > 0.3
+    monkeypatch.setattr(writer, "by_length", lambda *a, prev=None, **k: by_length(*a, **k))
+    assert drift_ms(cuts[2]) - uncut > 2.0  # +5.3 ms
+
+
+#: the Klipper user's tower (its fresh slice of the thirty-first round) at its layer change to z = 26.65:
+#: the last printed lines, the pinned lift, the travel, and the next layer's perimeter, after a header
+#: that stands the printer where they start
+TOWER_LAYER_CHANGE = """G90
+M82
+M204 P3000
+G92 E3181.1
+G1 X29.45 Y-23.3 Z26.45 F12000
+G4 P200
+G1 F3000
+G1 X29.35 Y-22.939 E3181.19385
+G1 X29.326 Y-22.819 E3181.19886
+G1 X29.301 Y-22.699 E3181.20436
+G1 X28.965 Y-22.616 E3181.21993
+M204 P3000
+G1 Z26.65 F15000
+G1 X28.821 Y-22.975
+M204 P2000
+G1 F2400
+G1 X28.025 Y-22.975 E3181.24689
+G1 X28.025 Y-18.025 E3181.41444
+G1 X28.821 Y-18.025 E3181.4414
+G1 X28.965 Y-17.965 E3181.44667
+G1 X29.025 Y-17.821 E3181.45195
+G1 X29.025 Y17.821 E3182.65842
+"""
+
+
+def test_a_cut_held_back_from_a_turn_keeps_clear_of_the_lifts_tail_before_it(tmp_path, monkeypatch):
+    """``TOWER_LAYER_CHANGE`` on other_delta, its chunk cut 4 samples past the travel's turn into the
+    perimeter (a turn and a change of ratio).  The rule of ``writer.CARRY_TAIL_SAMPLES`` holds the
+    travel's last 18 samples back from such a corner; the travel is 20 ms long, and that cut fell
+    one sample before the end of the pinned lift before it, whose tail the same rule keeps whole:
+    the lift's braking ran +0.58 ms late.  The rule now applies again at the cut it moved to
+    (``writer.CARRY_TAIL_PASSES``), and the cut keeps the uncut clock."""
+    from ffcomp.gcode import writer
+    from ffcomp.gcode.planner import GcodePlan
+
+    src = tmp_path / "tower.gcode"
+    src.write_text(TOWER_LAYER_CHANGE)
+    prof = load_profile(OTHER)
+    perimeter = next(m for m in GcodePlan(str(src), prof) if m.lineno == 17)
+    cut_at = [None]
+    _cut_chunks_at(monkeypatch, cut_at)
+
+    def drift_ms() -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    uncut = drift_ms()
+    assert abs(uncut) < 0.1
+    cut_at[0] = int(np.floor(perimeter.t_start_s * 1000)) + 4
+    assert abs(drift_ms() - uncut) < 0.02, uncut
+    monkeypatch.setattr(writer, "CARRY_TAIL_PASSES", 1)
+    assert drift_ms() - uncut > 0.4  # the case: +0.576 against -0.046 ms
 
 
 def test_a_max_z_accel_warning_counts_the_junctions_and_states_the_measured_cost(tmp_path, profile):
@@ -1196,7 +1310,7 @@ def test_a_chunk_that_ends_on_a_corner_holds_back_the_moves_end(tmp_path, before
     moves = {m.index: m for m in GcodePlan(str(src), load_profile(OTHER))}
     dt = 1e-3
     fake = SimpleNamespace(moves=moves, dt=dt)
-    for name in ("_planned_at", "_corner_ahead", "_tail_ahead", "_rest_ahead"):
+    for name in ("_planned_at", "_corner_ahead", "_tail_ahead", "_turn_ahead", "_rest_ahead"):
         setattr(fake, name, getattr(writer.GcodeWriter, name).__get__(fake))
 
     def cut_of(mv) -> int:

@@ -144,6 +144,35 @@ def test_ratio_steps_stay_within_the_extruder_junction_limit():
                                   by_length(e[:m], d[:m], grp[:m], hold[:m]))
 
 
+def test_a_group_cut_between_chunks_ramps_from_the_last_chunks_ratio():
+    """One group (a single source move) whose compensated segments' reference-time extrusion runs at
+    0.188 mm/mm over its first half and 0.229 over its second (the command's lead changes along it),
+    cut between two of the writer's chunks there: each chunk evens its own part, and the junction
+    at the cut steps by 0.041, which Klipper passes at ``icv / 0.041`` = 24 mm/s, not the 50 mm/s
+    the segments run (a retracting z move on other_delta: 5.3 ms late).  Given the last chunk's last
+    segment (``prev``), the second part ramps from its ratio: every step within the junction limit,
+    the part's total unchanged.  After a hold (the firmware stops) it does not."""
+    from ffcomp.gcode.extrusion import RATIO_STEP_SHARE, by_length
+
+    d = np.full(60, 0.05)  # 1 ms segments at 50 mm/s
+    v = np.full(60, 50.0)
+    grp, hold = np.zeros(60, int), np.zeros(60, bool)
+    a = by_length(0.188 * d, d, grp, hold, speed_mm_s=v, icv_mm_s=1.0)
+    e_b = 0.229 * d * (1 + 0.01 * np.sin(np.arange(60)))  # (its own segments' reference time)
+    plain = by_length(e_b, d, grp, hold, speed_mm_s=v, icv_mm_s=1.0)
+    prev = (float(a[-1] / d[-1]), float(d[-1]), float(v[-1]))
+    assert abs(plain[0] / d[0] - prev[0]) > 0.04  # the case
+    out = by_length(e_b, d, grp, hold, speed_mm_s=v, icv_mm_s=1.0, prev=prev)
+    r = np.r_[prev[0], out / d]
+    assert np.all(np.abs(np.diff(r)) <= RATIO_STEP_SHARE * 1.0 / 50.0 * (1 + 1e-9))
+    assert out.sum() == pytest.approx(e_b.sum(), rel=1e-12)
+    assert np.ptp(r[-30:]) < 1e-12 and abs(r[-1] / 0.229 - 1) < 0.05
+    held = hold.copy()
+    held[0] = True
+    np.testing.assert_array_equal(by_length(e_b, d, grp, held, speed_mm_s=v, icv_mm_s=1.0, prev=prev),
+                                  by_length(e_b, d, grp, held, speed_mm_s=v, icv_mm_s=1.0))
+
+
 def test_a_group_that_leaves_a_reversal_takes_its_ratio_at_once():
     """A z move down to rest, then up while retracting (ratio -0.27 mm/mm): the reference-time
     extrusion of the first segments up ramps the ratio over several junctions (-0.04, -0.35, then

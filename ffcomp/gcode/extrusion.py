@@ -57,7 +57,8 @@ def flow_groups(moves: list, rel_tol: float = 0.01) -> np.ndarray:
 def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.ndarray,
               speed_mm_s: np.ndarray | None = None, icv_mm_s: float | None = None,
               capped: np.ndarray | None = None, e_limits: tuple[float, float] | None = None,
-              corner_v_mm_s: np.ndarray | None = None) -> np.ndarray:
+              corner_v_mm_s: np.ndarray | None = None,
+              prev: tuple[float, float, float] | None = None) -> np.ndarray:
     """Each group's extrusion shared among its segments in proportion to their written length.
 
     Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
@@ -92,6 +93,9 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
         extrusion instead, the segments leaving a reversal step their ratio at every junction while
         they speed up (a z move down, then up while retracting: 0.45 ms early on the way in, as the
         feed solve anticipated the lateness of the way out).
+    prev : (ratio, length mm, speed mm/s), optional
+        The segment the firmware runs at speed just before these (a previous chunk's last): see
+        :func:`limit_ratio_steps`.
     """
     de = np.asarray(de, float)
     if not len(de):
@@ -128,7 +132,7 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     out[ok] = tot_e[gi[ok]] * dist_mm[ok] / tot_d[gi[ok]]
     if speed_mm_s is not None and icv_mm_s is not None:
         out = limit_ratio_steps(out, dist_mm, np.asarray(speed_mm_s, float), g, hold, edge, float(icv_mm_s),
-                                capped=capped, e_limits=e_limits, step_ok=step_ok)
+                                capped=capped, e_limits=e_limits, step_ok=step_ok, prev=prev)
     return out
 
 
@@ -136,7 +140,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
                       hold: np.ndarray, edge: np.ndarray, icv_mm_s: float,
                       share: float = RATIO_STEP_SHARE, capped: np.ndarray | None = None,
                       max_shift: float = 0.1, e_limits: tuple[float, float] | None = None,
-                      step_ok: np.ndarray | None = None) -> np.ndarray:
+                      step_ok: np.ndarray | None = None,
+                      prev: tuple[float, float, float] | None = None) -> np.ndarray:
     """Extrusions whose ratio changes from segment to segment no faster than the firmware's
     junction limit lets the segments keep their speed.
 
@@ -173,7 +178,22 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     step_ok : (n,) bool, optional
         Segments whose start junction may take any change of ratio (see :func:`by_length`): no
         limit there, and a ramp starts afresh after it.
+    prev : (ratio, length mm, speed mm/s), optional
+        The segment written before ``e[0]`` that the firmware joins to it at speed (the last of
+        the writer's previous chunk, where the cut falls inside a group): the first group's ratio
+        ramps from that segment's instead of stepping to its own even ratio at once.  The chunks'
+        two parts of a group each take their own even ratio, which differ where the command's
+        lead changes along the group: a retracting z move cut 50 samples before its rest stepped
+        from 0.188 to 0.229 there, a junction capped at 24 mm/s in a 50 mm/s ramp, 5 ms late.
     """
+    if prev is not None and len(e) and not hold[0]:
+        def ahead(a, x):
+            return None if a is None else np.r_[x, a]
+        r0, d0, v0 = prev
+        return limit_ratio_steps(np.r_[r0 * d0, e], np.r_[d0, dist_mm], np.r_[v0, speed_mm_s],
+                                 np.r_[group[0] - 1, group], np.r_[False, hold], np.r_[False, edge],
+                                 icv_mm_s, share, capped=ahead(capped, False), max_shift=max_shift,
+                                 e_limits=e_limits, step_ok=ahead(step_ok, False))[1:]
     n = len(e)
     if n < 2 or icv_mm_s <= 0:
         return e

@@ -50,6 +50,7 @@ from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .plan_clock import (
     CORNER_LEAD_MAX_SAMPLES,
+    FREE_CORNER_STRAIGHT_COS,
     REST_POINT_NEAR_MM,
     corner_lead,
     corner_tail,
@@ -208,6 +209,9 @@ class GcodeWriter:
         self.prev_seg = None  # (vector mm, duration s) of the last moving segment written
         self.after_hold = False
         self.at_rest_end = False  # the last motion run ended on the plan's rest point (rest_end)
+        #: (extrusion ratio, length mm, intended speed mm/s) of the last segment written where the
+        #: firmware goes on from it at speed into the next chunk's first; None where it stops there
+        self.ratio_prev: tuple[float, float, float] | None = None
         #: write extruder-only moves up to EXTRUDE_SPARE_S faster (the command moved on during them)
         self.fast_extrude = True
         self.nlines = 0  # body lines written
@@ -319,10 +323,19 @@ class GcodeWriter:
           :data:`CARRY_SAMPLES` samples after it, the last :data:`CARRY_SAMPLES` samples wait (the
           rule above again at the new cut): the corner is written in one chunk (a user's tower
           on other_delta, cut right at a layer change's lift: -0.28 ms, now on time).
+        * Where the last run starts within :data:`CARRY_FREE_SAMPLES` samples of the cut on a turn
+          of the plan at speed that the command does not follow (``plan_clock.free_corner``'s
+          kind) or on a change of extrusion ratio at speed (:meth:`_turn_ahead`), that run and the
+          last :data:`CARRY_TAIL_SAMPLES` samples of the run before wait: the free corner drops up
+          to ``CORNER_LEAD_MAX_SAMPLES`` samples either side of it (with one sample of the run
+          before it had none to drop: +1.0 ms on a random file on other_delta), and the ratio's
+          ramp (``extrusion.limit_ratio_steps``) is written in one chunk (cut 11 samples into a
+          retraction's ramp, the first chunk ended on a feed the lift never made up: +0.56 ms).
         * Where the cut so far falls within :data:`CARRY_TAIL_SAMPLES` samples before a corner of the
-          plan that the command follows (a pinned lift into its travel), that many more samples
-          wait, so that ``plan_clock.corner_tail`` sees the move's end whole (the first rule again
-          at the new cut).
+          plan that the command follows (a pinned lift into its travel), or before a turn it does
+          not follow or a change of ratio, that many more samples wait, so that ``plan_clock.corner_tail`` or
+          ``plan_clock.free_corner`` sees the move's end whole (the first rule again at the new
+          cut, and this rule again up to :data:`CARRY_TAIL_PASSES` times in all).
         * Where the plan then comes to rest within :data:`CARRY_REST_SAMPLES` samples after the last
           sample written, that many more samples wait, so that the segments before the stop are
           timed knowing it (and the rule above holds at the new cut).
@@ -330,9 +343,14 @@ class GcodeWriter:
         mi = args[3]
         n = len(mi)
         cut = _run_start_cut(mi, n)
+        first = _last_run_start(mi, cut)
+        if 0 < first < cut and cut - first < CARRY_FREE_SAMPLES and self._turn_ahead(args, first - 1, 1):
+            cut = _run_start_cut(mi, max(first - CARRY_TAIL_SAMPLES, 0))
         if cut == n and n > CARRY_SAMPLES and self._corner_ahead(args, n - 1):
             cut = _run_start_cut(mi, n - CARRY_SAMPLES)
-        if 0 < cut and self._tail_ahead(args, cut - 1):
+        for _ in range(CARRY_TAIL_PASSES):  # (the new cut may fall before the corner before)
+            if not (0 < cut and self._tail_ahead(args, cut - 1)):
+                break
             cut = _run_start_cut(mi, max(cut - CARRY_TAIL_SAMPLES, 0))
         if cut > 0 and self._rest_ahead(args, cut - 1):
             cut = max(cut - CARRY_REST_SAMPLES, 0)
@@ -365,11 +383,31 @@ class GcodeWriter:
         :data:`ON_PLAN_MM`) in a planned move that ends in motion, into another move, within
         :data:`CARRY_TAIL_SAMPLES` samples after it: a cut there would leave
         :func:`~ffcomp.gcode.plan_clock.corner_tail` too few of the move's last samples to lengthen
-        the segment into the corner."""
+        the segment into the corner.  Off the plan, whether such a corner is one
+        :meth:`_turn_ahead` names (a turn for ``plan_clock.free_corner``, or a change of ratio)."""
         plan_mm = args[7]
-        if plan_mm is None or float(np.max(np.abs(args[1][i] - plan_mm[i]))) >= ON_PLAN_MM:
+        if plan_mm is None:
             return False
-        return self._corner_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
+        if float(np.max(np.abs(args[1][i] - plan_mm[i]))) < ON_PLAN_MM:
+            return self._corner_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
+        return self._turn_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
+
+    def _turn_ahead(self, args: tuple, i: int, samples: int) -> bool:
+        """Whether sample ``i`` of a chunk (``args``: :meth:`feed`'s) is in a planned move that ends in
+        motion, into another move, within ``samples`` samples after it, with a change of
+        extrusion ratio there, or with a turn while the sample is off the plan (by
+        :data:`ON_PLAN_MM` or more): a corner :func:`~ffcomp.gcode.plan_clock.free_corner` may
+        take."""
+        plan_mm = args[7]
+        if plan_mm is None or not self._corner_ahead(args, i, samples):
+            return False
+        mv, _ = self._planned_at(args, i)
+        nxt = self.moves[mv.index + 1]
+        if abs(mv.unit[3] - nxt.unit[3]) > 1e-9:
+            return True
+        if float(np.max(np.abs(args[1][i] - plan_mm[i]))) < ON_PLAN_MM:
+            return False
+        return sum(a * b for a, b in zip(mv.unit[:3], nxt.unit[:3])) <= FREE_CORNER_STRAIGHT_COS
 
     def _rest_ahead(self, args: tuple, i: int) -> bool:
         """Whether the plan comes to rest within :data:`CARRY_REST_SAMPLES` samples after sample
@@ -400,6 +438,7 @@ class GcodeWriter:
             self.stream_start_mm = None
             self.stream += 1
             self.at_rest_end = False
+            self.ratio_prev = None
         cut = np.nonzero(np.diff(move_index))[0] + 1
         starts = np.concatenate([[0], cut]).tolist()
         ends = np.concatenate([cut, [n]]).tolist()
@@ -556,6 +595,7 @@ class GcodeWriter:
         self.at_rest_end = at_rest_end
         self.pend_late_s = pend
         self.last_k, self.e_last_ref = last_k, e_last
+        ratio_prev, self.ratio_prev = self.ratio_prev, None
         if not run_ids:
             self._extrusion(ch, np.zeros(0), np.zeros(0, np.int64), ext_de, ext_runs)
             self.f_last = 0.0  # the firmware stops for extruder-only moves and dwells
@@ -684,7 +724,10 @@ class GcodeWriter:
         groups = flow_groups([runs[q].move for q in run_ids])[srun]
         capped = np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]
         ratio_changes = bool(np.any(groups[1:] != groups[:-1]))
-        de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt,
+        # the last chunk's last segment, where the firmware runs on from it into this chunk's first
+        if ratio_prev is not None and (run_ids[0] != 0 or follows_hold[0] or went[0] or rest_go[0]):
+            ratio_prev = None
+        de = by_length(Ef[j] - Ef[i], dist, groups, hold, speed_mm_s=dist / dt, prev=ratio_prev,
                        icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
                        e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel),
                        corner_v_mm_s=(self._corner_v(Pr[i], Pr[j], dist, Ef[j] - Ef[i])
@@ -734,6 +777,8 @@ class GcodeWriter:
             v = np.where(hold, np.where(np.abs(de) > 1e-9, np.maximum(np.abs(de) / dt, 1e-3), dt), v)
         if runs[-1].kind != MOVE:
             self.f_last = 0.0
+        elif not at_rest_end and not hold[-1] and dist[-1] > 1e-9:
+            self.ratio_prev = (float(de[-1] / dist[-1]), float(dist[-1]), float(dist[-1] / dt[-1]))
         # ---- statistics
         moving = ~hold
         self.stats.holds += int(hold.sum())
@@ -963,6 +1008,16 @@ CARRY_SAMPLES = 5
 #: segment, +0.32 ms)
 CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 
+#: the rule of :data:`CARRY_TAIL_SAMPLES` applies again at the cut it moved to, up to this many times
+#: in all: a cut held back from a travel's turn into a printed line fell within the tail of the
+#: pinned lift before the travel (a user's tower on other_delta: +0.58 ms)
+CARRY_TAIL_PASSES = 3
+
+#: :meth:`GcodeWriter.feed` holds back a chunk's last run where it starts within this many samples of
+#: the cut on a free corner or a change of extrusion ratio (``plan_clock.free_corner``'s lead reaches
+#: ``CORNER_LEAD_MAX_SAMPLES`` samples into the run and needs 4 more after them)
+CARRY_FREE_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 4
+
 #: :meth:`GcodeWriter.feed` holds back a chunk's last this-many samples when the plan comes to rest
 #: within as many samples after them: the segments written before a chunk's end are timed as if the
 #: chain went on, and a stop just after the cut left them no segments to take their braking back
@@ -976,12 +1031,18 @@ def _run_start_cut(mi: np.ndarray, cut: int) -> int:
     """``cut`` (the first sample held back), or earlier where the last run before it starts within
     :data:`CARRY_SAMPLES` samples of it: then that run waits too, with the run before's last
     sample (:meth:`GcodeWriter._carry_from`)."""
-    head = mi[:cut]
-    if len(head) and np.any(head != head[-1]):
-        first = cut - int(np.argmax(head[::-1] != head[-1]))
-        if 1 < first and cut - first < CARRY_SAMPLES:
-            return first - 1
+    first = _last_run_start(mi, cut)
+    if 1 < first and cut - first < CARRY_SAMPLES:
+        return first - 1
     return cut
+
+
+def _last_run_start(mi: np.ndarray, cut: int) -> int:
+    """The first sample of the run that holds sample ``cut - 1`` (0 where it starts the chunk)."""
+    head = mi[:cut]
+    if not len(head) or not np.any(head != head[-1]):
+        return 0
+    return cut - int(np.argmax(head[::-1] != head[-1]))
 
 
 def _joined(a: tuple, b: tuple) -> tuple:
