@@ -861,6 +861,27 @@ def _cut_chunks_at(monkeypatch, cut_at: list) -> None:
     monkeypatch.setattr(writer.GcodeWriter, "feed", cut_feed)
 
 
+def _cut_drift(tmp_path, monkeypatch, text: str, profile):
+    """The planned moves of the file ``text`` by line number, and a function of a plan sample ``at``:
+    the largest drift (ms) of the file's output with the pipeline's chunk cut there
+    (:func:`_cut_chunks_at`; None: uncut), self-check limits lifted."""
+    from ffcomp.gcode.planner import GcodePlan
+
+    src = tmp_path / "cut.gcode"
+    src.write_text(text)
+    moves = {m.lineno: m for m in GcodePlan(str(src), profile)}
+    cut_at = [None]
+    _cut_chunks_at(monkeypatch, cut_at)
+
+    def drift_ms(at: int | None = None) -> float:
+        cut_at[0] = at
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
+        return s.self_check_drift_ms
+
+    return moves, drift_ms
+
+
 #: a z-hop of the PrusaSlicer plate (``make_samples.py --large``: its lines 44264-44285, retraction,
 #: lift, travel, descent, unretraction and infill, after a header that stands the printer where
 #: they start, at the plate's acceleration: M204 P5000 R5000 T7000)
@@ -970,26 +991,14 @@ def test_a_chunk_cut_at_a_lifts_corner_keeps_its_tail_together(tmp_path, monkeyp
     on other_delta (the gyroid's whole file: +0.317 ms, its largest drift).  The writer now holds
     back the lift's last ``writer.CARRY_TAIL_SAMPLES`` samples too: every cut keeps the uncut clock."""
     from ffcomp.gcode import writer
-    from ffcomp.gcode.planner import GcodePlan
 
-    src = tmp_path / "lift.gcode"
-    src.write_text(GYROID_HOP)
-    prof = load_profile(OTHER)
-    lift = next(m for m in GcodePlan(str(src), prof) if m.lineno == 14)
-    cut_at = [None]
-    _cut_chunks_at(monkeypatch, cut_at)
-
-    def drift_ms() -> float:
-        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
-        return s.self_check_drift_ms
-
+    moves, drift_ms = _cut_drift(tmp_path, monkeypatch, GYROID_HOP, load_profile(OTHER))
     uncut = drift_ms()
     assert abs(uncut) < 0.1
-    cut_at[0] = int(np.floor(lift.t_end_s * 1000)) + after
-    assert abs(drift_ms() - uncut) < 0.005, uncut
+    at = int(np.floor(moves[14].t_end_s * 1000)) + after  # (line 14: the lift)
+    assert abs(drift_ms(at) - uncut) < 0.005, uncut
     monkeypatch.setattr(writer, "CARRY_TAIL_SAMPLES", 0)
-    assert drift_ms() - uncut > 0.2  # the case: +0.308 against +0.029 ms
+    assert drift_ms(at) - uncut > 0.2  # the case: +0.308 against +0.029 ms
 
 
 #: a random file: a travel into a lift the plan turns at 5.3 mm/s (44 deg), the command at 12-16 mm/s,
@@ -1042,23 +1051,10 @@ def test_a_chunk_cut_near_a_free_corner_or_a_change_of_ratio_keeps_the_clock(tmp
     the last chunk's ratio (``extrusion.limit_ratio_steps``'s ``prev``)."""
     from ffcomp.gcode import writer
     from ffcomp.gcode.extrusion import by_length
-    from ffcomp.gcode.planner import GcodePlan
 
-    src = tmp_path / "lift.gcode"
-    src.write_text(RETRACTING_LIFT)
-    prof = load_profile(OTHER)
-    moves = {m.lineno: m for m in GcodePlan(str(src), prof)}
+    moves, drift_ms = _cut_drift(tmp_path, monkeypatch, RETRACTING_LIFT, load_profile(OTHER))
     turn, ratio = (int(np.floor(moves[ln].t_start_s * 1000)) for ln in (11, 12))
-    cut_at = [None]
-    _cut_chunks_at(monkeypatch, cut_at)
-
-    def drift_ms(at) -> float:
-        cut_at[0] = at
-        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
-        return s.self_check_drift_ms
-
-    uncut = drift_ms(None)
+    uncut = drift_ms()
     assert abs(uncut) < 0.1
     cuts = (turn + 4, ratio + 11, ratio + 16)
     for at in cuts:
@@ -1106,26 +1102,14 @@ def test_a_cut_held_back_from_a_turn_keeps_clear_of_the_lifts_tail_before_it(tmp
     the lift's braking ran +0.58 ms late.  The rule now applies again at the cut it moved to
     (``writer.CARRY_TAIL_PASSES``), and the cut keeps the uncut clock."""
     from ffcomp.gcode import writer
-    from ffcomp.gcode.planner import GcodePlan
 
-    src = tmp_path / "tower.gcode"
-    src.write_text(TOWER_LAYER_CHANGE)
-    prof = load_profile(OTHER)
-    perimeter = next(m for m in GcodePlan(str(src), prof) if m.lineno == 17)
-    cut_at = [None]
-    _cut_chunks_at(monkeypatch, cut_at)
-
-    def drift_ms() -> float:
-        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9))
-        return s.self_check_drift_ms
-
+    moves, drift_ms = _cut_drift(tmp_path, monkeypatch, TOWER_LAYER_CHANGE, load_profile(OTHER))
     uncut = drift_ms()
     assert abs(uncut) < 0.1
-    cut_at[0] = int(np.floor(perimeter.t_start_s * 1000)) + 4
-    assert abs(drift_ms() - uncut) < 0.02, uncut
+    at = int(np.floor(moves[17].t_start_s * 1000)) + 4  # (line 17: the perimeter)
+    assert abs(drift_ms(at) - uncut) < 0.02, uncut
     monkeypatch.setattr(writer, "CARRY_TAIL_PASSES", 1)
-    assert drift_ms() - uncut > 0.4  # the case: +0.576 against -0.046 ms
+    assert drift_ms(at) - uncut > 0.4  # the case: +0.576 against -0.046 ms
 
 
 def test_a_max_z_accel_warning_counts_the_junctions_and_states_the_measured_cost(tmp_path, profile):
