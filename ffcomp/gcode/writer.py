@@ -333,9 +333,10 @@ class GcodeWriter:
           retraction's ramp, the first chunk ended on a feed the lift never made up: +0.56 ms).
         * Where the cut so far falls within :data:`CARRY_TAIL_SAMPLES` samples before a corner of the
           plan that the command follows (a pinned lift into its travel), or before a turn it does
-          not follow or a change of ratio, that many more samples wait, so that ``plan_clock.corner_tail`` or
-          ``plan_clock.free_corner`` sees the move's end whole (the first rule again at the new
-          cut, and this rule again up to :data:`CARRY_TAIL_PASSES` times in all).
+          not follow or a change of ratio, that many more samples wait, so that
+          ``plan_clock.corner_tail`` or ``plan_clock.free_corner`` sees the move's end whole (the
+          first rule again at the new cut, and this rule again up to :data:`CARRY_TAIL_PASSES`
+          times in all).
         * Where the plan then comes to rest within :data:`CARRY_REST_SAMPLES` samples after the last
           sample written, that many more samples wait, so that the segments before the stop are
           timed knowing it (and the rule above holds at the new cut).
@@ -385,10 +386,9 @@ class GcodeWriter:
         :func:`~ffcomp.gcode.plan_clock.corner_tail` too few of the move's last samples to lengthen
         the segment into the corner.  Off the plan, whether such a corner is one
         :meth:`_turn_ahead` names (a turn for ``plan_clock.free_corner``, or a change of ratio)."""
-        plan_mm = args[7]
-        if plan_mm is None:
+        if args[7] is None:
             return False
-        if float(np.max(np.abs(args[1][i] - plan_mm[i]))) < ON_PLAN_MM:
+        if _on_plan(args, i):
             return self._corner_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
         return self._turn_ahead(args, i, CARRY_TAIL_SAMPLES + 1)
 
@@ -398,14 +398,13 @@ class GcodeWriter:
         extrusion ratio there, or with a turn while the sample is off the plan (by
         :data:`ON_PLAN_MM` or more): a corner :func:`~ffcomp.gcode.plan_clock.free_corner` may
         take."""
-        plan_mm = args[7]
-        if plan_mm is None or not self._corner_ahead(args, i, samples):
+        if args[7] is None or not self._corner_ahead(args, i, samples):
             return False
         mv, _ = self._planned_at(args, i)
         nxt = self.moves[mv.index + 1]
         if abs(mv.unit[3] - nxt.unit[3]) > 1e-9:
             return True
-        if float(np.max(np.abs(args[1][i] - plan_mm[i]))) < ON_PLAN_MM:
+        if _on_plan(args, i):
             return False
         return sum(a * b for a, b in zip(mv.unit[:3], nxt.unit[:3])) <= FREE_CORNER_STRAIGHT_COS
 
@@ -1035,6 +1034,12 @@ def _run_start_cut(mi: np.ndarray, cut: int) -> int:
     if 1 < first and cut - first < CARRY_SAMPLES:
         return first - 1
     return cut
+
+
+def _on_plan(args: tuple, i: int) -> bool:
+    """Whether sample ``i`` of a chunk (``args``: :meth:`GcodeWriter.feed`'s, with ``plan_mm``) lies
+    within :data:`ON_PLAN_MM` of the plan on every axis."""
+    return float(np.max(np.abs(args[1][i] - args[7][i]))) < ON_PLAN_MM
 
 
 def _last_run_start(mi: np.ndarray, cut: int) -> int:
