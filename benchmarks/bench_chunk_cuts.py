@@ -27,8 +27,7 @@ import tempfile  # noqa: E402
 
 import pytest  # noqa: E402
 import test_timing  # noqa: E402
-
-from ffcomp.profile import default_profile, load_profile  # noqa: E402
+from trace_drift import profile_named  # noqa: E402
 
 CASES = {"retracting_lift": "RETRACTING_LIFT", "tower_layer_change": "TOWER_LAYER_CHANGE", "hop": "HOP",
          "gyroid_hop": "GYROID_HOP"}
@@ -54,12 +53,7 @@ def main() -> None:
     ap.add_argument("--to", dest="k1", type=int, default=None, help="plan sample to stop before (default: the end)")
     a = ap.parse_args()
     text = getattr(test_timing, CASES[a.case]) if a.case in CASES else Path(a.case).read_text()
-    if a.profile == "default":
-        prof = default_profile()
-    elif a.profile == "other_delta":
-        prof = load_profile(ROOT / "samples" / "profiles" / "other_delta.toml")
-    else:
-        prof = load_profile(a.profile)
+    prof = profile_named(a.profile)
     with tempfile.TemporaryDirectory() as tmp:
         moves, _ = test_timing._cut_drift(Path(tmp), pytest.MonkeyPatch(), text, prof)
     end = int(max(m.t_end_s for m in moves.values()) * 1000)

@@ -47,6 +47,15 @@ def trace(src: Path, profile, opts: CompensateOptions | None = None) -> tuple[ob
     return s, seg, lines
 
 
+def profile_named(name: str):
+    """The profile a benchmark's ``--profile`` names: ``default``, ``other_delta``, or a file."""
+    if name == "default":
+        return default_profile()
+    if name == "other_delta":
+        return load_profile(ROOT / "samples" / "profiles" / "other_delta.toml")
+    return load_profile(name)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("file", type=Path)
@@ -54,13 +63,7 @@ def main() -> None:
     ap.add_argument("--at", type=float, default=None, help="print time to look at, s (default: the largest lateness)")
     ap.add_argument("--context", type=int, default=20, help="segments before and after")
     a = ap.parse_args()
-    if a.profile == "default":
-        prof = default_profile()
-    elif a.profile == "other_delta":
-        prof = load_profile(ROOT / "samples" / "profiles" / "other_delta.toml")
-    else:
-        prof = load_profile(a.profile)
-    s, seg, lines = trace(a.file, prof)
+    s, seg, lines = trace(a.file, profile_named(a.profile))
     print(f"drift max {s.self_check_drift_ms:+.3f} ms near t = {s.self_check_drift_at_s:.3f} s; "
           f"at the end {s.self_check_drift_end_ms:+.3f} ms")
     if not len(seg["late_s"]):
