@@ -9,8 +9,11 @@ from ffcomp.gcode.plan_clock import (
     CORNER_LEAD_GAP_MM,
     REST_POINT_NEAR_MM,
     corner_lead,
+    corner_lead_free,
+    corner_segment_mm,
     corner_tail,
     free_corner,
+    free_into_pinned,
     plan_speeds,
     rest_end,
     rest_start,
@@ -165,6 +168,77 @@ def test_a_run_leaves_a_corner_with_a_first_segment_the_junction_allows(t0):
     back = travel._replace(unit=(np.sqrt(0.5), 0.0, np.sqrt(0.5), 0.0))
     far = corner_lead(DT, 100, a, len(k), X, down, k, on, lead, back)
     assert far is not None and far[0] >= n_drop
+
+
+def test_a_free_run_leaving_the_plans_corner_drops_the_samples_within_its_reach():
+    """The mirror of :func:`corner_lead` for a command off the plan after the corner (a correction
+    of a few micrometres in x): the samples closer to the corner than Klipper's centripetal rule
+    needs at the plan's ``v_j`` go, the next one stays where it is.  On a straight plan, a turn of
+    0.7 deg in the command just past the corner gets the same rule (3.2 um chords cap a junction at
+    27 mm/s in a lift at 55 mm/s)."""
+    down, travel = _corner_down(v_j=5.0, t0=0.0103)
+    k = np.arange(0, 40)
+    a = int(np.ceil(0.0103 / DT))
+    X = np.zeros((len(k), 3))
+    X[:, 2] = 1.0 - np.array([down.distance_at(t) for t in k * DT])
+    X[a:, 0] = 2e-4 * np.arange(len(k) - a) ** 0.5  # the correction, off the plan (0.2 um and more)
+    on = np.zeros(len(k), bool)
+    lead = np.array([0.0, 0.0, 1.0])
+    reach = corner_segment_mm(travel.unit, down.unit, 5.0, 3000.0)
+    got = corner_lead_free(a, len(k), X, down, on, lead, travel, 3000.0, 5e-3)
+    d = np.linalg.norm(X[a:] - lead, axis=1)
+    assert got == (int(np.argmax(d >= reach)), None, None) and got[0] >= 1
+    # on the plan it is corner_lead's; elsewhere, or beyond the tolerance, nothing
+    assert corner_lead_free(a, len(k), X, down, np.ones(len(k), bool), lead, travel, 3000.0, 5e-3) is None
+    assert corner_lead_free(a, len(k), X, down, on, lead + 0.01, travel, 3000.0, 5e-3) is None
+    assert corner_lead_free(a, len(k), X, down, on, lead, travel, 3000.0, 1e-7) is None
+    # a straight plan: the command turns 0.7 deg 3.2 um past the corner
+    up = PlannedMove(1, 2, "move", 0.0, (0.0, 0.0, 1.0, 0.0), (0.0, 0.0, 2.0, 0.0), 1.0, (0.0, 0.0, 1.0, 0.0),
+                     55.0, 55.0, 55.0, 3000.0, 0.0, 1.0 / 55.0, 0.0)
+    below = up._replace(index=0, start_mm=(0.0, 0.0, 0.0, 0.0), end_mm=(0.0, 0.0, 1.0, 0.0))
+    S = np.zeros((12, 3))
+    S[:, 2] = 1.0 + 0.0032 + 0.055 * np.arange(12)
+    S[1:, 0] = 7e-4 * np.arange(1, 12)  # 0.7 um per 55 um: 0.73 deg
+    jc = -np.dot(S[0] - lead, S[1] - S[0]) / np.linalg.norm(S[0] - lead) / np.linalg.norm(S[1] - S[0])
+    tan_half = np.sqrt(0.5 * (1 - jc)) / np.sqrt(0.5 * (1 + jc))
+    assert np.sqrt(0.5 * 0.0032 * 3000.0 * tan_half) < 30.0  # Klipper's cap there: the case
+    assert corner_lead_free(0, 12, S, up, np.ones(12, bool), lead, below, 3000.0, 5e-3) == (1, None, None)
+    # a command on the line: nothing to drop
+    S[:, 0] = 0.0
+    assert corner_lead_free(0, 12, S, up, np.ones(12, bool), lead, below, 3000.0, 5e-3) is None
+
+
+def test_a_free_run_into_a_pinned_one_ends_on_the_plans_corner():
+    """A free command (off the plan before the corner) into a pinned lift (on the plan after it):
+    the run ends on the plan's corner point at the plan's time, where the command passes within
+    ``REST_POINT_NEAR_MM`` of it and its chord into it is no faster than the one before; not where
+    the command lags the corner (it would have to speed up into it), nor with a pinned side before."""
+    down, _ = _corner_down(v_j=5.0, t0=0.0303)
+    # 0.1 mm at 5 mm/s into the corner
+    travel = PlannedMove(0, 1, "move", 0.0103, (-0.1, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), 0.1, (1.0, 0.0, 0.0, 0.0),
+                         5.0, 5.0, 5.0, 3000.0, 0.0, 0.02, 0.0)
+    k = np.arange(0, 50)
+    b = int(np.ceil(0.0303 / DT))  # the lift's first sample
+    X = np.zeros((len(k), 3))
+    t = k * DT
+    X[:b, 0] = -np.array([travel.distance_mm - travel.distance_at(x) for x in t[:b]])
+    X[:b, 2] = 1.0
+    X[b:, 2] = 1.0 - np.array([down.distance_at(x) for x in t[b:]])
+    X[:b, 1] = 5e-4  # the travel's correction: 0.5 um off the plan
+    on = np.r_[np.zeros(b, bool), np.ones(len(k) - b, bool)]
+    got = free_into_pinned(DT, 100, 0, b, X, travel, down, k, on)
+    assert got is not None
+    (pt, k_end, e, appended), n_tail, m = got
+    np.testing.assert_allclose(pt, [0.0, 0.0, 1.0])
+    assert k_end == pytest.approx(100 + travel.t_end_s / DT) and appended == 1 and m == 0
+    assert n_tail == int(np.linalg.norm(X[b - 1] - pt) < REST_POINT_NEAR_MM)
+    assert free_into_pinned(DT, 100, 0, b, X, travel, down, k, np.ones(len(k), bool)) is None  # pinned before
+    lag = X.copy()
+    lag[b - 1, 0] -= 1.5e-3  # 1.5 um behind: its chord into the corner would have to speed up
+    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on) is None
+    far = X.copy()
+    far[:b, 1] = 0.01  # 10 um off the plan's corner
+    assert free_into_pinned(DT, 100, 0, b, far, travel, down, k, on) is None
 
 
 def test_a_slow_lifts_first_point_may_lie_in_its_cruise():

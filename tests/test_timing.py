@@ -1339,3 +1339,85 @@ def test_the_hinge_splits_a_stretch_the_limits_cannot_run_in_its_time(tmp_path, 
     off, off_um = run()
     assert abs(on) < 0.2 and abs(off) > 0.2, (on, off)
     assert on_um <= 1.1 * off_um, (on_um, off_um)
+
+
+#: random files (``bench_random_drift.py``) whose plan turns at a corner the writer wrote off the
+#: plan's: each with the rule that now writes it, the module and switch that turn the rule off,
+#: and the drift (ms) without it
+PLAN_CORNER_CASES = [
+    # a travel into an extruding lift the plan turns at icv / 0.471 = 2.1 mm/s: the ratio was
+    # ramped 0 -> 0.06 -> 0.58 -> 0.47 over three junctions instead of stepped at the corner
+    pytest.param("default", "G90\nM83\nG1 X-30.424 Y19.168 Z2.246 F6282\nG1 Z3.933 E-0.2791 F13214\n"
+                 "G1 Z5.528 F5704\nG1 X-0.969 Y8.799 Z6.716 F6463\nG1 E-0.8 F2100\n"
+                 "G1 X-11.162 Y-13.812 Z8.471 F11969\nG1 Z11.654 E1.4997 F10148\n",
+                 ("extrusion", "PLAN_STEP_SLACK", 0.0), -0.546, id="ratio-step-at-the-plans-corner"),
+    # a free travel into a pinned extruding lift: one chord straddled the corner, the lift's
+    # change of ratio came a sample late, where the plan already speeds up
+    pytest.param("other", "G90\nM83\nG28\nG1 X-8.287 Y-26.900 Z6.755 F13078\nG1 X9.726 Y-10.997 E1.3165 F14648\n"
+                 "G1 E-0.8 F2100\nG1 X-4.265 Y22.532 Z7.330 E1.3223 F6031\nG1 Z7.718 E1.7194 F1498\n"
+                 "G1 Z8.563 F6976\nG1 E-0.8 F2100\nG1 X26.470 Y-25.731 Z9.004 F13358\n",
+                 ("writer", "FREE_INTO_PINNED", False), -0.432, id="free-into-pinned-ratio"),
+    # the same with a turn into the lift at 5 mm/s (square_corner_velocity)
+    pytest.param("other", "G90\nM83\nG1 X-5.523 Y-1.933 Z1.443 F10519\nG1 X6.085 Y4.526 E-0.9650 F1740\n"
+                 "G1 X-31.142 Y2.233 E1.0279 F2648\nG1 X1.951 Y19.696 Z2.385 E1.8792 F14862\n"
+                 "G1 Z5.240 E0.1733 F8313\nG1 X27.423 Y14.126 Z7.261 F7281\n",
+                 ("writer", "FREE_INTO_PINNED", False), -0.262, id="free-into-pinned-turn"),
+    # ... where the free command is 2 um behind the plan's corner: a chord into it at 15 mm/s after
+    # 7 would run the approach early, so the straddling chord stays (the guard)
+    pytest.param("other", "G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"
+                 "G1 X-13.002 Y-36.669 Z9.571 E-0.7220 F12508\nG1 X-28.061 Y-23.697 Z11.932 E0.6920 F5775\n"
+                 "G1 Z15.922 E1.4386 F6307\n",
+                 ("plan_clock", "FREE_INTO_PINNED_SPEEDUP", 1e9), -0.451, id="free-into-pinned-guard"),
+    # a pinned retracting travel into a free lift: the lift's first chord (1.2 um) capped the corner
+    # at 3.5 mm/s, the plan passes it at 9.2
+    pytest.param("default", "G90\nM83\nG28\nG1 X2.025 Y2.245 Z3.942 F9919\nG1 X0.553 Y-0.010 Z6.080 E-0.3736 F4822\n"
+                 "G1 Z6.428 F5432\nG1 X3.827 Y8.539 Z9.864 E1.3579 F14865\nG1 X-0.261 Y-2.770 E1.5839 F5303\n"
+                 "G1 X22.062 Y13.429 Z12.976 F4100\n",
+                 ("writer", "FREE_CORNER_LEAD", False), +0.279, id="pinned-into-free"),
+    # two collinear z moves, the second's command 0.7 um off the line: the 3.2 um chord from the
+    # plan's corner into that turn capped the junction at 27 mm/s in a pinned lift at 55
+    pytest.param("other", "G90\nM83\nG1 X-25.784 Y-6.044 Z7.188 F5353\nG1 Z8.597 F8928\nG1 E-0.8 F2100\n"
+                 "G1 Z12.056 E1.9085 F8670\nG1 Z13.227 F4119\nG1 Z14.052 F7443\n"
+                 "G1 X-2.183 Y-0.145 E-0.9025 F14747\n",
+                 ("writer", "FREE_CORNER_LEAD", False), +4.562, id="straight-corner-kink"),
+]
+
+
+@pytest.mark.parametrize("which, text, switch, before_ms", PLAN_CORNER_CASES)
+def test_a_corner_the_plan_passes_slowly_is_written_where_and_as_the_plan_takes_it(
+        tmp_path, monkeypatch, profile, which, text, switch, before_ms):
+    """The thirty-third round's corners (``docs/gcode_clock.md``): a change of extrusion ratio the
+    plan takes at its corner is stepped there (``extrusion.by_length``'s ``plan_v_mm_s``); a free
+    command into a pinned one ends on the plan's corner (``plan_clock.free_into_pinned``, unless its
+    chord into the corner would have to speed up); a free command out of the plan's corner drops
+    the samples within the corner's reach, on a straight plan those within a small turn's reach
+    (``plan_clock.corner_lead_free``).  Each file within 0.2 ms, and each case reproduces without
+    its rule."""
+    from ffcomp.gcode import extrusion, plan_clock, writer
+
+    prof = profile if which == "default" else load_profile(OTHER)
+    drift_ms, _ = _random_file_drift(tmp_path, text, prof)
+    assert abs(drift_ms) < 0.2, drift_ms
+    mod, name, off = switch
+    monkeypatch.setattr({"extrusion": extrusion, "writer": writer, "plan_clock": plan_clock}[mod], name, off)
+    before, _ = _random_file_drift(tmp_path, text, prof)
+    assert before == pytest.approx(before_ms, abs=0.05)  # the case
+
+
+def test_the_travel_to_the_start_ends_where_the_first_segment_starts(tmp_path, profile):
+    """A file without homing whose first move after the start is an extruding z move (a random file,
+    ``bench_random_drift.py --seed 11``): the travel to the start went to the command's first
+    sample, 0.1 um off in x from the point the writer's first segment starts from.  That made the
+    first segment an XY move to Klipper, which then skipped the extruder's acceleration cap the feed
+    solve had counted on, and the file ran 0.34 ms early from there on.  The travel now ends on
+    the writer's lead point: the first segment is z-only as written, and the file keeps the clock."""
+    text = ("G90\nM83\nG1 X5.265 Y15.942 Z5.374 F11335\nG1 Z9.290 E1.7848 F14384\nG1 Z11.067 E1.6848 F7181\n"
+            "G1 X16.474 Y11.680 E-0.0120 F10241\nG1 X12.368 Y-12.574 F5612\nG1 X8.588 Y-3.502 E-0.8221 F14134\n"
+            "G1 E-0.8 F2100\nG1 Z12.767 E-0.3411 F12367\nG1 X18.687 Y9.982 Z16.703 E0.6012 F11645\n")
+    drift_ms, _ = _random_file_drift(tmp_path, text, profile)
+    assert abs(drift_ms) < 0.2, drift_ms
+    out = (tmp_path / "o.gcode").read_text().splitlines()
+    k = next(i for i, ln in enumerate(out) if "travel to the start" in ln)
+    first = next(ln for ln in out[k + 1:] if ln.startswith("G1 "))
+    words = lambda ln: dict((w[0], w[1:]) for w in ln.split(";")[0].split()[1:])  # noqa: E731
+    assert (words(out[k])["X"], words(out[k])["Y"]) == (words(first)["X"], words(first)["Y"])

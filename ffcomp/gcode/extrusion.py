@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "STEP_GAIN", "STEP_BACK_S", "flow_groups", "by_length",
+__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "PLAN_STEP_SLACK", "STEP_GAIN", "STEP_BACK_S", "flow_groups", "by_length",
            "limit_ratio_steps", "place_ratio_steps", "junction_loss_s", "extruder_capped"]
 
 #: after a change of extrusion ratio, segments keep the extrusion of their reference time until its
@@ -31,6 +31,10 @@ STEP_BACK_S = 0.008
 #: the written ratio changes by at most this share of ``instantaneous_corner_velocity / v`` at a
 #: junction the firmware passes at ``v`` (see :func:`limit_ratio_steps`)
 RATIO_STEP_SHARE = 0.7
+
+#: a group starting on a plan corner takes its change of ratio at once where the plan passes that
+#: corner no faster than this times ``instantaneous_corner_velocity / diff_r`` (see :func:`by_length`)
+PLAN_STEP_SLACK = 1.05
 
 
 def extruder_capped(mv) -> bool:
@@ -58,7 +62,8 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
               speed_mm_s: np.ndarray | None = None, icv_mm_s: float | None = None,
               capped: np.ndarray | None = None, e_limits: tuple[float, float] | None = None,
               corner_v_mm_s: np.ndarray | None = None,
-              prev: tuple[float, float, float] | None = None) -> np.ndarray:
+              prev: tuple[float, float, float] | None = None,
+              plan_v_mm_s: np.ndarray | None = None) -> np.ndarray:
     """Each group's extrusion shared among its segments in proportion to their written length.
 
     Klipper limits the junction of two segments whose extrusion ratios ``e/d`` differ to
@@ -96,6 +101,15 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     prev : (ratio, length mm, speed mm/s), optional
         The segment the firmware runs at speed just before these (a previous chunk's last): see
         :func:`limit_ratio_steps`.
+    plan_v_mm_s : (n,) optional
+        The plan's own speed (mm/s) at each segment's start where that start is the plan's corner
+        (NaN elsewhere).  A group that starts on a corner the plan itself passes no faster than its
+        change of ratio allows (within :data:`PLAN_STEP_SLACK`: a travel into an extruding lift, the
+        plan slowed to ``icv / diff_r``) takes its ratio there at once, as the plan does: ramped
+        instead, the first step let the firmware through the corner faster than the plan, the next
+        one braked it after the corner, where the plan speeds up, and its ratio above the group's
+        lowered the extruder's acceleration cap (a random file on the default profile 0.55 ms off
+        the clock).
     """
     de = np.asarray(de, float)
     if not len(de):
@@ -120,6 +134,10 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
         cv = np.asarray(corner_v_mm_s, float)[s_]
         step_ok[s_] = np.isfinite(cv) & (np.where(np.isfinite(cv), cv, 0.0) * step
                                          <= RATIO_STEP_SHARE * float(icv_mm_s))
+        if plan_v_mm_s is not None:
+            pv = np.asarray(plan_v_mm_s, float)[s_]
+            step_ok[s_] |= np.isfinite(pv) & (np.where(np.isfinite(pv), pv, 0.0) * step
+                                              <= PLAN_STEP_SLACK * float(icv_mm_s))
     near |= step_ok  # (the edge of such a group ends before it starts)
     reached = np.maximum.accumulate(np.where(near, np.arange(n), -1))
     first = np.maximum.accumulate(np.where(start, np.arange(n), -1))

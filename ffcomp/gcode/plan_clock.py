@@ -19,8 +19,8 @@ import numpy as np
 from .chain_plan import junction_v2, segment_limits
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "corner_tail", "corner_segment_mm", "free_corner",
-           "sampled_corners_ok", "plan_speeds",
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_lead_free", "corner_tail", "corner_segment_mm", "free_corner",
+           "free_into_pinned", "sampled_corners_ok", "plan_speeds",
            "REST_POINT_NEAR_MM",
            "CORNER_LEAD_MAX_MM"]
 
@@ -90,13 +90,15 @@ CORNER_LEAD_GAP_MM = 2e-3
 
 
 def corner_segment_mm(u_in, u_out, v_mm_s: float, accel_mm_s2: float,
-                      max_mm: float = CORNER_LEAD_MAX_MM) -> float | None:
+                      max_mm: float = CORNER_LEAD_MAX_MM, straight_cos: float = -0.999) -> float | None:
     """The length (mm) a segment next to a junction needs for Klipper's centripetal rule,
     ``v^2 <= d a tan(theta/2) / 2``, to allow ``v_mm_s`` there: ``2 v^2 / (a tan(theta/2))`` for the
     inner angle ``theta`` between the directions ``u_in`` and ``u_out``, at most
-    ``max_mm``; None on a (nearly) straight line (no rule) or under a micrometre."""
+    ``max_mm``; None on a (nearly) straight line (Klipper's ``junction_cos_theta`` below
+    ``straight_cos``: by default turns under 2.6 deg; Klipper's own is -0.999999, 0.08 deg) or
+    under a micrometre."""
     jc = -float(np.dot(u_in[:3], u_out[:3]))  # Klipper's junction_cos_theta
-    if jc < -0.999:
+    if jc < straight_cos:
         return None
     tan_half = np.sqrt(0.5 * (1.0 - jc)) / np.sqrt(max(0.5 * (1.0 + jc), 1e-12))
     reach = min(2.0 * v_mm_s * v_mm_s / (accel_mm_s2 * tan_half), max_mm)
@@ -160,6 +162,66 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
     if not (k0 + a - 1 < k < k0 + a + m - 1e-6):
         return None
     return m - 1, start + np.array(mv.unit[:3], float) * reach, k
+
+
+def corner_lead_free(a: int, b: int, X: np.ndarray, mv: PlannedMove | None, on_plan: np.ndarray | None,
+                     lead_pt: np.ndarray | None, prev: PlannedMove | None, fw_accel_mm_s2: float, tol_mm: float):
+    """How a free motion run (samples ``a .. b - 1``, off the plan within the corner's reach) that leaves the plan's
+    corner begins, the run before having ended on that corner (pinned up to it: :func:`rest_end`):
+    ``(n, None, None)``, its first ``n`` samples dropped, or None to keep them.
+
+    The mirror of :func:`corner_lead` for a command that leaves the plan at the corner (a
+    retracting travel into a lift the correction moves): written as sampled, its first chord is a
+    micrometre or two, and Klipper's centripetal rule of that chord caps the corner below the
+    plan's ``v_j`` (a random file on the default profile: 3.5 mm/s for the plan's 9, then the lift
+    ran 0.28 ms late).  The samples within ``2 v_j^2 / (a tan(theta/2))`` of the corner (at most
+    :data:`CORNER_LEAD_MAX_MM`; ``a`` the firmware's acceleration along the move,
+    ``fw_accel_mm_s2``) go, where they lie within ``tol_mm`` of the chord that replaces them and at
+    least three samples remain.
+    """
+    if (on_plan is None or mv is None or prev is None or prev.kind != MOVE or mv.kind != MOVE
+            or lead_pt is None or mv.start_v_mm_s <= 1e-9 or fw_accel_mm_s2 <= 0.0 or b - a < 4):
+        return None
+    start = np.array(mv.start_mm[:3], float)
+    if np.linalg.norm(np.round(start, 4) - lead_pt) >= 1e-3:
+        return None
+    reach = corner_segment_mm(prev.unit, mv.unit, mv.start_v_mm_s, fw_accel_mm_s2)
+    if reach is None:
+        return _straight_lead(a, b, X, mv, start, fw_accel_mm_s2, tol_mm)
+    d = np.linalg.norm(X[a:min(b, a + CORNER_LEAD_MAX_SAMPLES)] - start, axis=1)
+    beyond = np.nonzero(d >= reach)[0]
+    if not beyond.size:
+        return None
+    m = int(beyond[0])
+    if m == 0 or m > b - a - 3 or on_plan[a:a + m + 1].all() or _off_chord(X[a:a + m], start, X[a + m]) > tol_mm:
+        return None
+    return m, None, None
+
+
+def _straight_lead(a: int, b: int, X: np.ndarray, mv: PlannedMove, start: np.ndarray, fw_accel_mm_s2: float,
+                   tol_mm: float):
+    """:func:`corner_lead_free` where the plan runs straight on through the corner (two collinear
+    moves): the first chord, from the corner point to the run's first sample, may be a few
+    micrometres, and where the command turns there by a fraction of a degree (a correction
+    leaving a pinned z move), Klipper's centripetal rule of that chord caps the junction (3.2 um
+    and a 0.7 deg turn: 27 mm/s in a lift at 55 mm/s, which the pinned ramp before it braked for,
+    4.6 ms late on other_delta).  The samples whose chord from the corner is shorter than
+    :func:`corner_segment_mm` of the turn there at the plan's speed go, where they lie within
+    ``tol_mm`` of the chord that replaces them and at least three samples remain."""
+    v = mv.start_v_mm_s
+    m = 0
+    while m < min(b - a - 3, CORNER_LEAD_MAX_SAMPLES):
+        d_in, d_out = X[a + m] - start, X[a + m + 1] - X[a + m]
+        l_in, l_out = float(np.linalg.norm(d_in)), float(np.linalg.norm(d_out))
+        if l_in < 1e-6 or l_out < 1e-6:
+            return None
+        reach = corner_segment_mm(d_in / l_in, d_out / l_out, v, fw_accel_mm_s2, straight_cos=-0.999999)
+        if reach is None or l_in >= reach:
+            break
+        m += 1
+    if m == 0 or m > b - a - 3 or _off_chord(X[a:a + m], start, X[a + m]) > tol_mm:
+        return None
+    return m, None, None
 
 
 def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
@@ -396,6 +458,57 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
         return None
     k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
     return (pc, k_end, float(mv.end_mm[3]), 1), n, m
+
+
+#: :func:`free_into_pinned`'s chord into the corner may be at most this much faster (its mean speed)
+#: than the sample's chord before it
+FREE_INTO_PINNED_SPEEDUP = 1.25
+
+
+def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
+                     next_move: PlannedMove | None, k_plan: np.ndarray | None, on_plan: np.ndarray | None,
+                     tol_mm: float = REST_POINT_NEAR_MM):
+    """A corner the plan passes at speed between samples ``k0 + b - 1`` and ``k0 + b`` where a free
+    command (its last sample before the corner off the plan) turns into a pinned one (the next
+    run's first two samples on the plan: a travel into a lift): ``((point mm, time / dt, extruder
+    mm, 1), n_tail, 0)`` as :func:`free_corner` gives it, or None.
+
+    Written as sampled, one chord straddles the corner: the firmware's junction after it (a kink
+    into the lift, or the lift's change of extrusion ratio) caps the speed below the plan's at
+    the lift's first sample, and the lift, ramping at ``max_z_accel``, never makes it up (the
+    feed solve ran the travel up to 0.43 ms early to share the lateness: random files on
+    other_delta).  The run ends instead on the plan's corner point at the plan's time, so the
+    next run starts on its move's start and :func:`corner_lead` places its first point as the
+    plan passes it; the firmware then turns where and as fast as the plan does.  Only where the
+    command, interpolated to the corner's time, lies within ``tol_mm`` of the plan's corner (the
+    writer's point tolerance; the correction there is what the pin repair left, a micrometre or a
+    few) and the chord into the corner needs no more than :data:`FREE_INTO_PINNED_SPEEDUP` times
+    the speed of the one before it; a last sample within :data:`REST_POINT_NEAR_MM` of the corner
+    gives it its place (``n_tail`` 1).
+    """
+    if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
+            or on_plan is None or b < 2 or b - a < 2 or b + 1 >= len(X) or mv.end_v_mm_s <= 1e-9
+            or on_plan[b - 1] or not (on_plan[b] and on_plan[b + 1])):
+        return None
+    if k_plan[b - 1] < 0 or k_plan[b] != k_plan[b - 1] + 1 or abs(next_move.t_start_s - mv.t_end_s) > 1e-9:
+        return None
+    t1, t2 = k_plan[b - 1] * dt, k_plan[b] * dt
+    if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
+        return None
+    corner = np.array(mv.end_mm[:3], float)
+    w = (mv.t_end_s - t1) / dt
+    c1 = X[b - 1] - _plan_point(mv, t1)
+    if np.linalg.norm(c1 * (1.0 - w)) >= tol_mm:
+        return None
+    n_tail = int(b - 1 > a and np.linalg.norm(X[b - 1] - corner) < REST_POINT_NEAR_MM)
+    # the chord into the corner no faster than the one before it (the plan brakes into the corner;
+    # a command a micrometre or two behind it there would have to speed up into it: a random
+    # file on other_delta asked 15 mm/s after 7 and ran its approach 0.45 ms early)
+    if not n_tail and np.linalg.norm(X[b - 1] - corner) > FREE_INTO_PINNED_SPEEDUP * w * np.linalg.norm(
+            X[b - 1] - X[b - 2]):
+        return None
+    k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
+    return (corner, k_end, float(mv.end_mm[3]), 1), n_tail, 0
 
 
 def sampled_corners_ok(lim, X: np.ndarray, bs: np.ndarray, dt: float) -> np.ndarray:

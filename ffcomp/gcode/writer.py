@@ -53,8 +53,10 @@ from .plan_clock import (
     FREE_CORNER_STRAIGHT_COS,
     REST_POINT_NEAR_MM,
     corner_lead,
+    corner_lead_free,
     corner_tail,
     free_corner,
+    free_into_pinned,
     plan_speeds,
     rest_end,
     rest_start,
@@ -165,6 +167,22 @@ def extruder_limit_lines(op: LimitsChange) -> list[str]:
     return out
 
 
+
+def _plan_corner_v(moves: list, srun: np.ndarray, first_seg: np.ndarray, start_pt: np.ndarray) -> np.ndarray:
+    """The plan's speed (mm/s) at the start of each written segment that starts a run on its plan
+    move's start point (the plan's corner, as the writer placed it: printed to 0.1 um) and follows
+    the plan from there (``first_seg``: those segments' end on the plan), NaN elsewhere (see
+    :func:`~ffcomp.gcode.extrusion.by_length`'s ``plan_v_mm_s``).  A free command may pass the
+    corner faster than the plan (a correction's velocity of 10 mm/s at a retracting lift's end):
+    there the ramp of ratios lets it through."""
+    out = np.full(len(srun), np.nan)
+    for q in np.nonzero(first_seg)[0].tolist():
+        mv = moves[int(srun[q])]
+        if mv is not None and mv.kind == MOVE and \
+                np.linalg.norm(start_pt[q] - np.round(np.asarray(mv.start_mm[:3], float), 4)) < 1e-3:
+            out[q] = mv.start_v_mm_s
+    return out
+
 class GcodeWriter:
     """Streams the compensated body of a G-code file.
 
@@ -223,6 +241,8 @@ class GcodeWriter:
         #: where the firmware stands when the next stream starts (the plan's point: after a homing,
         #: the home position), mm; None: the stream's first sample
         self.stream_start_mm: np.ndarray | None = None
+        #: the point the current stream's first segment starts from (mm)
+        self.stream_lead_mm: np.ndarray | None = None
         #: Klipper's limits for the closed-loop feed solve (None: the per-segment solve, for Marlin)
         self.chain = chain_limits
         self.timing = TimingState()
@@ -434,6 +454,7 @@ class GcodeWriter:
         if self.last_pt is None:  # a new stream (the start, or after a homing)
             start = self.stream_start_mm if self.stream_start_mm is not None else xyz_mm[0]
             self.last_pt, self.last_k, self.e_last_ref = np.array(start, float), k0, float(e_mm[0])
+            self.stream_lead_mm = self.last_pt.copy()
             self.stream_start_mm = None
             self.stream += 1
             self.at_rest_end = False
@@ -459,7 +480,10 @@ class GcodeWriter:
                 self._next_sig = self.nlines + SIGNATURE_EVERY_LINES
             self.flush_lines(ln)
             if self.start_travel_mm_s is not None:
-                self._start_travel(xyz_mm[0])
+                # (to the point the stream's first segment starts from: the command's first sample
+                # may lie 0.1 um off it, which made a z-only first segment an XY move to Klipper, rid
+                # of the extruder's acceleration cap the feed solve counted on: 0.2 ms early)
+                self._start_travel(self.stream_lead_mm)
             if kind == MOVE:
                 s0, s1 = chunk.run_lines[r]
                 # the firmware stands still (the plan leaves rest later), or stops on the rest point
@@ -548,8 +572,7 @@ class GcodeWriter:
                 if free_lead:  # the previous run ended on a free corner (plan_clock.free_corner)
                     leads.append((free_lead, None, None))
                 else:
-                    leads.append(corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, last_pt,
-                                             self.moves.get(mv.index - 1))
+                    leads.append(self._corner_lead(k0, a, b, X, mv, k_plan, on_plan, last_pt)
                                  if self.chain is not None and mv is not None else None)
                 free_lead = 0
                 run_ids.append(r)
@@ -564,7 +587,7 @@ class GcodeWriter:
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 free = None
-                if end is None and r in look:
+                if end is None and (r in look or self._into_pinned(b, on_plan)):
                     free = self._free_corner(k0, a, b, runs[r + 1], X, mv, k_plan, on_plan)
                 if free is not None:
                     end, n_tail, free_lead = free
@@ -730,7 +753,10 @@ class GcodeWriter:
                        icv_mm_s=self.chain.instant_corner_v if self.chain is not None else None, capped=capped,
                        e_limits=None if self.chain is None else (self.chain.max_e_velocity, self.chain.max_e_accel),
                        corner_v_mm_s=(self._corner_v(Pr[i], Pr[j], dist, Ef[j] - Ef[i])
-                                      if self.chain is not None and ratio_changes else None))
+                                      if self.chain is not None and ratio_changes else None),
+                       plan_v_mm_s=(_plan_corner_v([runs[q].move for q in run_ids], srun,
+                                                   first_seg & on_plan[src[j]], Pr[i])
+                                    if ratio_changes and on_plan is not None else None))
         if self.chain is not None and self.place_steps and ratio_changes:
             # each change of ratio on its cheapest junction (a chunk without one has nothing to place)
             de = place_ratio_steps(de, dist, dist / dt, segment_limits(self.chain, Pr[i], Pr[j], de)[1], groups,
@@ -853,6 +879,15 @@ class GcodeWriter:
         ok = sampled_corners_ok(self.chain, X, np.array([runs[r].end for r in rs]), self.dt)
         return {r for r, o in zip(rs, ok.tolist()) if not o}
 
+    @staticmethod
+    def _into_pinned(b: int, on_plan) -> bool:
+        """Whether a free run ending at sample ``b`` meets a pinned one there (its last sample off the
+        plan, the next two on it): :func:`~ffcomp.gcode.plan_clock.free_into_pinned` looks at it
+        whether or not the sampled chords pass Klipper's corner rules (the junction a straddling
+        chord spoils may be the extruder's: a travel into an extruding lift)."""
+        return (FREE_INTO_PINNED and on_plan is not None and 1 <= b < len(on_plan) - 1 and not on_plan[b - 1]
+                and bool(on_plan[b]) and bool(on_plan[b + 1]))
+
     def _free_corner(self, k0: int, a: int, b: int, nxt, X: np.ndarray, mv, k_plan, on_plan):
         """:func:`~ffcomp.gcode.plan_clock.free_corner` into the next run ``nxt`` (a motion run of
         the next move that starts at ``b``) with the firmware's limits; None where either side of the
@@ -863,8 +898,22 @@ class GcodeWriter:
         if mv is None or kind2 != MOVE or mv2 is None or a2 != b or mv2.index != mv.index + 1:
             return None
         if on_plan is not None and on_plan[b - 1:b + 2].any():  # a pinned side: corner_lead / corner_tail
-            return None
+            # (a free command into a pinned one: the plan's corner, then corner_lead)
+            return free_into_pinned(self.dt, k0, a, b, X, mv, mv2, k_plan, on_plan, self.tol) if FREE_INTO_PINNED \
+                else None
         return free_corner(self.dt, k0, a, b, b2, X, mv, mv2, k_plan, self.chain, self.tol)
+
+    def _corner_lead(self, k0: int, a: int, b: int, X: np.ndarray, mv, k_plan, on_plan, lead_pt):
+        """:func:`~ffcomp.gcode.plan_clock.corner_lead`, or for a free run that leaves the plan's
+        corner :func:`~ffcomp.gcode.plan_clock.corner_lead_free` (with the firmware's acceleration
+        along the move)."""
+        prev = self.moves.get(mv.index - 1)
+        lead = corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, lead_pt, prev)
+        if lead is not None or not FREE_CORNER_LEAD or on_plan is None:
+            return lead
+        st, en = np.array(mv.start_mm[:3], float)[None], np.array(mv.end_mm[:3], float)[None]
+        acc = float(segment_limits(self.chain, st, en, np.zeros(1))[1][0])
+        return corner_lead_free(a, b, X, mv, on_plan, lead_pt, prev, acc, self.tol)
 
     def _corner_tail(self, k0: int, a: int, b: int, X: np.ndarray, mv, on_plan, end):
         """:func:`~ffcomp.gcode.plan_clock.corner_tail` with the firmware's acceleration along the move."""
@@ -1011,6 +1060,13 @@ CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 #: in all: a cut held back from a travel's turn into a printed line fell within the tail of the
 #: pinned lift before the travel (a user's tower on other_delta: +0.58 ms)
 CARRY_TAIL_PASSES = 3
+
+#: a free command's run into a pinned one ends on the plan's corner
+#: (:func:`~ffcomp.gcode.plan_clock.free_into_pinned`; a switch for the tests)
+FREE_INTO_PINNED = True
+#: a free run that leaves the plan's corner drops its first samples within the corner's reach
+#: (:func:`~ffcomp.gcode.plan_clock.corner_lead_free`; a switch for the tests)
+FREE_CORNER_LEAD = True
 
 #: :meth:`GcodeWriter.feed` holds back a chunk's last run where it starts within this many samples of
 #: the cut on a free corner or a change of extrusion ratio (``plan_clock.free_corner``'s lead reaches
