@@ -19,8 +19,8 @@ import numpy as np
 from .chain_plan import junction_v2, segment_limits
 from .moves import MOVE, PlannedMove
 
-__all__ = ["rest_end", "rest_start", "corner_lead", "corner_lead_free", "corner_tail", "corner_segment_mm", "free_corner",
-           "free_into_pinned", "sampled_corners_ok", "plan_speeds",
+__all__ = ["rest_end", "rest_start", "corner_lead", "corner_lead_free", "corner_tail", "corner_segment_mm",
+           "free_corner", "free_into_pinned", "sampled_corners_ok", "plan_speeds",
            "REST_POINT_NEAR_MM",
            "CORNER_LEAD_MAX_MM"]
 
