@@ -211,8 +211,13 @@ def test_a_free_run_leaving_the_plans_corner_drops_the_samples_within_its_reach(
 def test_a_free_run_into_a_pinned_one_ends_on_the_plans_corner():
     """A free command (off the plan before the corner) into a pinned lift (on the plan after it):
     the run ends on the plan's corner point at the plan's time, where the command passes within
-    ``REST_POINT_NEAR_MM`` of it and its chord into it is no faster than the one before; not where
-    the command lags the corner (it would have to speed up into it), nor with a pinned side before."""
+    the tolerance of it and the firmware can run its chord into it in time (braking to the plan's
+    corner speed at the acceleration ``lim`` gives it); not where the command lags the corner (the
+    chord would need more than its time), nor with a pinned side before."""
+    from ffcomp.gcode.chain_plan import ChainLimits
+    from ffcomp.profile import default_profile
+
+    lim = ChainLimits(default_profile(), 3000.0, 5.0)
     down, _ = _corner_down(v_j=5.0, t0=0.0303)
     # 0.1 mm at 5 mm/s into the corner
     travel = PlannedMove(0, 1, "move", 0.0103, (-0.1, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), 0.1, (1.0, 0.0, 0.0, 0.0),
@@ -226,7 +231,7 @@ def test_a_free_run_into_a_pinned_one_ends_on_the_plans_corner():
     X[b:, 2] = 1.0 - np.array([down.distance_at(x) for x in t[b:]])
     X[:b, 1] = 5e-4  # the travel's correction: 0.5 um off the plan
     on = np.r_[np.zeros(b, bool), np.ones(len(k) - b, bool)]
-    got = free_into_pinned(DT, 100, 0, b, X, travel, down, k, on)
+    got = free_into_pinned(DT, 100, 0, b, X, travel, down, k, on, lim=lim)
     assert got is not None
     (pt, k_end, e, appended), n_tail, m = got
     np.testing.assert_allclose(pt, [0.0, 0.0, 1.0])
@@ -234,8 +239,9 @@ def test_a_free_run_into_a_pinned_one_ends_on_the_plans_corner():
     assert n_tail == int(np.linalg.norm(X[b - 1] - pt) < REST_POINT_NEAR_MM)
     assert free_into_pinned(DT, 100, 0, b, X, travel, down, k, np.ones(len(k), bool)) is None  # pinned before
     lag = X.copy()
-    lag[b - 1, 0] -= 1.5e-3  # 1.5 um behind: its chord into the corner would have to speed up
-    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on) is None
+    lag[b - 1, 0] -= 1.5e-3  # 1.5 um behind: 3 um in 0.3 ms, braking to 5 mm/s at 3000 mm/s^2 takes 0.52
+    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on) is not None  # (without the limits)
+    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on, lim=lim) is None
     far = X.copy()
     far[:b, 1] = 0.01  # 10 um off the plan's corner
     assert free_into_pinned(DT, 100, 0, b, far, travel, down, k, on) is None

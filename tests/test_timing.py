@@ -1362,12 +1362,12 @@ PLAN_CORNER_CASES = [
                  "G1 X-31.142 Y2.233 E1.0279 F2648\nG1 X1.951 Y19.696 Z2.385 E1.8792 F14862\n"
                  "G1 Z5.240 E0.1733 F8313\nG1 X27.423 Y14.126 Z7.261 F7281\n",
                  ("writer", "FREE_INTO_PINNED", False), -0.262, id="free-into-pinned-turn"),
-    # ... where the free command is 2 um behind the plan's corner: a chord into it at 15 mm/s after
-    # 7 would run the approach early, so the straddling chord stays (the guard)
+    # ... where the free command is 2 um behind the plan's corner: a chord into it in 0.18 ms that the
+    # firmware needs 0.63 ms for would run the approach early, so the straddling chord stays (the guard)
     pytest.param("other", "G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"
                  "G1 X-13.002 Y-36.669 Z9.571 E-0.7220 F12508\nG1 X-28.061 Y-23.697 Z11.932 E0.6920 F5775\n"
                  "G1 Z15.922 E1.4386 F6307\n",
-                 ("plan_clock", "FREE_INTO_PINNED_SPEEDUP", 1e9), -0.451, id="free-into-pinned-guard"),
+                 ("plan_clock", "FREE_INTO_PINNED_SLACK_S", 1.0), -0.451, id="free-into-pinned-guard"),
     # a pinned retracting travel into a free lift: the lift's first chord (1.2 um) capped the corner
     # at 3.5 mm/s, the plan passes it at 9.2
     pytest.param("default", "G90\nM83\nG28\nG1 X2.025 Y2.245 Z3.942 F9919\nG1 X0.553 Y-0.010 Z6.080 E-0.3736 F4822\n"
@@ -1388,8 +1388,8 @@ def test_a_corner_the_plan_passes_slowly_is_written_where_and_as_the_plan_takes_
         tmp_path, monkeypatch, profile, which, text, switch, before_ms):
     """The thirty-third round's corners (``docs/gcode_clock.md``): a change of extrusion ratio the
     plan takes at its corner is stepped there (``extrusion.by_length``'s ``plan_v_mm_s``); a free
-    command into a pinned one ends on the plan's corner (``plan_clock.free_into_pinned``, unless its
-    chord into the corner would have to speed up); a free command out of the plan's corner drops
+    command into a pinned one ends on the plan's corner (``plan_clock.free_into_pinned``, unless the
+    firmware cannot run its chord into the corner in time); a free command out of the plan's corner drops
     the samples within the corner's reach, on a straight plan those within a small turn's reach
     (``plan_clock.corner_lead_free``).  Each file within 0.2 ms, and each case reproduces without
     its rule."""

@@ -460,14 +460,16 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
     return (pc, k_end, float(mv.end_mm[3]), 1), n, m
 
 
-#: :func:`free_into_pinned`'s chord into the corner may be at most this much faster (its mean speed)
-#: than the sample's chord before it
-FREE_INTO_PINNED_SPEEDUP = 1.25
+#: the firmware's shortest time for :func:`free_into_pinned`'s chord into the corner may exceed its
+#: share of the sample by this much, s (the feed solve spreads that little: a travel into an
+#: extruding lift asked 0.38 ms of a chord that needs 0.51 and still kept the clock 0.4 ms better
+#: than the straddling chord; 0.40 and 0.45 ms over ran the approach early)
+FREE_INTO_PINNED_SLACK_S = 1.5e-4
 
 
 def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
                      next_move: PlannedMove | None, k_plan: np.ndarray | None, on_plan: np.ndarray | None,
-                     tol_mm: float = REST_POINT_NEAR_MM):
+                     tol_mm: float = REST_POINT_NEAR_MM, lim=None):
     """A corner the plan passes at speed between samples ``k0 + b - 1`` and ``k0 + b`` where a free
     command (its last sample before the corner off the plan) turns into a pinned one (the next
     run's first two samples on the plan: a travel into a lift): ``((point mm, time / dt, extruder
@@ -482,9 +484,10 @@ def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: Plan
     plan passes it; the firmware then turns where and as fast as the plan does.  Only where the
     command, interpolated to the corner's time, lies within ``tol_mm`` of the plan's corner (the
     writer's point tolerance; the correction there is what the pin repair left, a micrometre or a
-    few) and the chord into the corner needs no more than :data:`FREE_INTO_PINNED_SPEEDUP` times
-    the speed of the one before it; a last sample within :data:`REST_POINT_NEAR_MM` of the corner
-    gives it its place (``n_tail`` 1).
+    few) and (given ``lim``, a :class:`~ffcomp.gcode.chain_plan.ChainLimits`) the chord into the
+    corner has no less time than the firmware needs to run it braking to the plan's corner speed,
+    less :data:`FREE_INTO_PINNED_SLACK_S`; a last sample within :data:`REST_POINT_NEAR_MM` of the
+    corner gives it its place (``n_tail`` 1).
     """
     if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
             or on_plan is None or b < 2 or b - a < 2 or b + 1 >= len(X) or mv.end_v_mm_s <= 1e-9
@@ -504,9 +507,16 @@ def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: Plan
     # the chord into the corner no faster than the one before it (the plan brakes into the corner;
     # a command a micrometre or two behind it there would have to speed up into it: a random
     # file on other_delta asked 15 mm/s after 7 and ran its approach 0.45 ms early)
-    if not n_tail and np.linalg.norm(X[b - 1] - corner) > FREE_INTO_PINNED_SPEEDUP * w * np.linalg.norm(
-            X[b - 1] - X[b - 2]):
-        return None
+    # the chord into the corner: one the firmware can run in its time while braking to the plan's
+    # speed at the corner (the shortest: entered at the speed it can brake from within its length).
+    # A command a few micrometres behind the plan there would have to catch up: a random file on
+    # other_delta asked 0.18 ms of a chord that needs 0.63 ms, and ran its approach 0.45 ms early
+    L = float(np.linalg.norm(X[b - 1] - corner))
+    if lim is not None and not n_tail and L > 1e-9:
+        acc = float(segment_limits(lim, X[b - 1][None], corner[None], np.zeros(1))[1][0])
+        v_j = mv.end_v_mm_s
+        if (np.sqrt(v_j * v_j + 2.0 * acc * L) - v_j) / acc > w * dt + FREE_INTO_PINNED_SLACK_S:
+            return None
     k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
     return (corner, k_end, float(mv.end_mm[3]), 1), n_tail, 0
 

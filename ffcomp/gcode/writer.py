@@ -899,8 +899,8 @@ class GcodeWriter:
             return None
         if on_plan is not None and on_plan[b - 1:b + 2].any():  # a pinned side: corner_lead / corner_tail
             # (a free command into a pinned one: the plan's corner, then corner_lead)
-            return free_into_pinned(self.dt, k0, a, b, X, mv, mv2, k_plan, on_plan, self.tol) if FREE_INTO_PINNED \
-                else None
+            return free_into_pinned(self.dt, k0, a, b, X, mv, mv2, k_plan, on_plan, self.tol, self.chain) \
+                if FREE_INTO_PINNED else None
         return free_corner(self.dt, k0, a, b, b2, X, mv, mv2, k_plan, self.chain, self.tol)
 
     def _corner_lead(self, k0: int, a: int, b: int, X: np.ndarray, mv, k_plan, on_plan, lead_pt):
