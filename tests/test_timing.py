@@ -1362,6 +1362,13 @@ PLAN_CORNER_CASES = [
                  "G1 X-31.142 Y2.233 E1.0279 F2648\nG1 X1.951 Y19.696 Z2.385 E1.8792 F14862\n"
                  "G1 Z5.240 E0.1733 F8313\nG1 X27.423 Y14.126 Z7.261 F7281\n",
                  ("writer", "FREE_INTO_PINNED", False), -0.262, id="free-into-pinned-turn"),
+    # a retracting travel into an extruding lift whose chords pass Klipper's corner rules (the
+    # writer looks at it anyway), the command 2.9 um off the plan's corner (within the 5 um tolerance)
+    pytest.param("default", "G90\nM83\nG28\nG1 X-23.709 Y26.374 Z0.837 F14936\nG1 X-8.801 Y-32.342 F14511\n"
+                 "G1 X24.806 Y-14.343 F4660\nG1 X2.372 Y-22.361 E-0.8195 F14861\nG1 Z1.879 E1.4694 F11417\n"
+                 "G1 X-0.088 Y-1.893 Z3.628 E-0.8025 F2979\nG1 X-2.082 Y-11.230 Z5.754 E0.6805 F6251\n"
+                 "G1 X-0.607 Y-0.026 F5578\n",
+                 ("writer", "FREE_INTO_PINNED", False), -0.520, id="free-into-pinned-ratio-default"),
     # ... where the free command is 2 um behind the plan's corner: a chord into it in 0.18 ms that the
     # firmware needs 0.63 ms for would run the approach early, so the straddling chord stays (the guard)
     pytest.param("other", "G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"

@@ -461,10 +461,10 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
 
 
 #: the firmware's shortest time for :func:`free_into_pinned`'s chord into the corner may exceed its
-#: share of the sample by this much, s (the feed solve spreads that little: a travel into an
-#: extruding lift asked 0.38 ms of a chord that needs 0.51 and still kept the clock 0.4 ms better
-#: than the straddling chord; 0.40 and 0.45 ms over ran the approach early)
-FREE_INTO_PINNED_SLACK_S = 1.5e-4
+#: share of the sample by this much, s (the feed solve spreads that little: travels into extruding
+#: lifts asked 0.38 and 0.57 ms of chords that need 0.51 and 0.73, and kept the clock 0.4 and
+#: 0.14 ms better than the straddling chord; 0.40 and 0.45 ms over ran the approach early)
+FREE_INTO_PINNED_SLACK_S = 2e-4
 
 
 def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
