@@ -176,11 +176,15 @@ def _plan_corner_v(moves: list, srun: np.ndarray, first_seg: np.ndarray, start_p
     corner faster than the plan (a correction's velocity of 10 mm/s at a retracting lift's end):
     there the ramp of ratios lets it through."""
     out = np.full(len(srun), np.nan)
-    for q in np.nonzero(first_seg)[0].tolist():
-        mv = moves[int(srun[q])]
-        if mv is not None and mv.kind == MOVE and \
-                np.linalg.norm(start_pt[q] - np.round(np.asarray(mv.start_mm[:3], float), 4)) < 1e-3:
-            out[q] = mv.start_v_mm_s
+    qs = np.nonzero(first_seg)[0]
+    ok = [(q, moves[int(srun[q])]) for q in qs.tolist()]
+    ok = [(q, mv) for q, mv in ok if mv is not None and mv.kind == MOVE]
+    if not ok:
+        return out
+    q = np.array([q for q, _ in ok])
+    st = np.round(np.array([mv.start_mm[:3] for _, mv in ok], float), 4)
+    near = np.linalg.norm(start_pt[q] - st, axis=1) < 1e-3
+    out[q[near]] = [mv.start_v_mm_s for (_, mv), n in zip(ok, near.tolist()) if n]
     return out
 
 class GcodeWriter:
@@ -909,8 +913,9 @@ class GcodeWriter:
         along the move)."""
         prev = self.moves.get(mv.index - 1)
         lead = corner_lead(self.dt, k0, a, b, X, mv, k_plan, on_plan, lead_pt, prev)
-        if lead is not None or not FREE_CORNER_LEAD or on_plan is None:
-            return lead
+        if (lead is not None or not FREE_CORNER_LEAD or on_plan is None or mv.start_v_mm_s <= 1e-9
+                or lead_pt is None or abs(round(mv.start_mm[2], 4) - lead_pt[2]) >= 1e-3):
+            return lead  # (the cheap part of corner_lead_free's own conditions first)
         st, en = np.array(mv.start_mm[:3], float)[None], np.array(mv.end_mm[:3], float)[None]
         acc = float(segment_limits(self.chain, st, en, np.zeros(1))[1][0])
         return corner_lead_free(a, b, X, mv, on_plan, lead_pt, prev, acc, self.tol)
