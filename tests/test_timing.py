@@ -1428,3 +1428,27 @@ def test_the_travel_to_the_start_ends_where_the_first_segment_starts(tmp_path, p
     first = next(ln for ln in out[k + 1:] if ln.startswith("G1 "))
     words = lambda ln: dict((w[0], w[1:]) for w in ln.split(";")[0].split()[1:])  # noqa: E731
     assert (words(out[k])["X"], words(out[k])["Y"]) == (words(first)["X"], words(first)["Y"])
+
+
+def test_a_printed_line_into_a_retracting_lift_leads_in_on_the_plan(tmp_path):
+    """A printed line into a retracting lift that the plan enters at the extruder's junction speed
+    (``icv / |diff_r|`` = 0.85 mm/s; a random file on other_delta): the free command came into the
+    corner at 11 mm/s, the firmware braked for the ratio step and the pinned lift ran late, 0.93 ms
+    with the feed solve's anticipation.  The line's last ``lead_in_printed_s`` now follow the plan
+    (``RepairConfig.lead_in_wet``), as a travel's do."""
+    from ffcomp.compensate.pin_repair import RepairConfig
+
+    text = ("G90\nM83\nG28\nG1 X-33.892 Y-16.767 Z0.420 F10276\nG1 X21.478 Y6.567 Z0.665 E1.1198 F4546\n"
+            "G1 Z1.367 E-0.8178 F2694\nG1 X4.803 Y8.732 Z1.758 F3947\n")
+    src = tmp_path / "r.gcode"
+    src.write_text(text)
+    prof = load_profile(OTHER)
+
+    def drift(wet: bool) -> float:
+        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
+                            CompensateOptions(predict=False, self_check_drift_ms=1e9,
+                                              repair=RepairConfig(lead_in_wet=wet)))
+        return s.self_check_drift_ms
+
+    assert abs(drift(True)) < 0.2
+    assert drift(False) < -0.8  # the case: -0.93 ms

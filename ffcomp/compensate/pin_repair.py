@@ -99,6 +99,12 @@ class RepairConfig:
         into an extruding or retracting lift: the free command came into that corner at 5-7 mm/s
         where the rule allows 1.4, and the lift ran 0.3-0.6 ms late;
         :func:`~ffcomp.pipeline.limited_moves.enters_by_extruder`)
+    lead_in_wet : ``lead_in_printed_s`` also where the pinned move extrudes or retracts itself (a
+        printed line into a retracting lift the plan enters at ``icv / |diff_r|``, 0.8 mm/s: the
+        free command came into that corner at 11 mm/s and the lift ran 0.93 ms late; random files
+        of ``bench_random_drift.py``, both seeds: default 6 -> 3 of 140 beyond 0.2 ms, other_delta
+        19 -> 16, one file worse, -0.59 -> +0.71 ms; the fidelity bench and the sample files as
+        before; thirty-third round)
     steep_accel_factor : in windows whose free command lies on moves ``max_z_accel`` binds, the
         acceleration scales above are divided by this (the firmware caps those segments and their
         junctions at ``max_z_accel * d/|dz|``)
@@ -148,6 +154,7 @@ class RepairConfig:
     lead_in_z_s: float = 0.002
     lead_in_printed_s: float = 0.002
     lead_in_extruder: bool = True
+    lead_in_wet: bool = True
     still_near_steep: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0

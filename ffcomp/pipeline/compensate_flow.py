@@ -436,7 +436,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
                 return (moves_where(meta["move_index"], moves, pinned)
                         | after_firmware(meta["move_index"], moves, t_s, dt)
                         | lead_into(meta["move_index"], moves, t_s, opts.repair.lead_in_s, led_in,
-                                    opts.repair.lead_in_printed_s, opts.repair.lead_in_z_s))
+                                    opts.repair.lead_in_printed_s, opts.repair.lead_in_z_s,
+                                    opts.repair.lead_in_wet))
 
             zpins = (lambda meta: moves_where(meta["move_index"], moves, hop_pinned)) if opts.repair.z_only_hops \
                 else None

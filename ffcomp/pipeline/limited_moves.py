@@ -59,11 +59,11 @@ def after_firmware(move_index: np.ndarray, moves: dict, t_s: np.ndarray, dt: flo
 
 
 def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: float, pred,
-              printed_s: float = 0.0, z_span_s: float | None = None) -> np.ndarray:
+              printed_s: float = 0.0, z_span_s: float | None = None, wet: bool = False) -> np.ndarray:
     """The samples within ``span_s`` (s) of the end of a travel (kind ``move``, no extrusion), or
-    within ``printed_s`` of the end of a move that extrudes into one that does not, whose next move
-    satisfies ``pred``; ``t_s``: the samples' times, s.  ``z_span_s`` (default ``span_s``): the span
-    for a travel that moves more in z than in XY."""
+    within ``printed_s`` of the end of a move that extrudes into one that does not (``wet``: into
+    any), whose next move satisfies ``pred``; ``t_s``: the samples' times, s.  ``z_span_s`` (default
+    ``span_s``): the span for a travel that moves more in z than in XY."""
     if max(span_s, printed_s, z_span_s or 0.0) <= 0.0 or not len(move_index):
         return np.zeros(len(move_index), bool)
     uniq, inv = np.unique(move_index, return_inverse=True)
@@ -73,7 +73,7 @@ def lead_into(move_index: np.ndarray, moves: dict, t_s: np.ndarray, span_s: floa
         if mv is None or nx is None or mv.kind != "move":
             continue
         printed = mv.end_mm[3] != mv.start_mm[3]
-        if printed and nx.end_mm[3] != nx.start_mm[3]:
+        if printed and nx.end_mm[3] != nx.start_mm[3] and not wet:
             continue  # (a lift that extrudes: Klipper's extruder junction rule governs that corner)
         if printed:
             span = printed_s
