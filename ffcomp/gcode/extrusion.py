@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "PLAN_STEP_SLACK", "STEP_GAIN", "STEP_BACK_S", "flow_groups", "by_length",
-           "limit_ratio_steps", "place_ratio_steps", "junction_loss_s", "extruder_capped"]
+__all__ = ["EDGE_SHARE", "RATIO_STEP_SHARE", "PLAN_STEP_SLACK", "STEP_GAIN", "STEP_BACK_S", "flow_groups",
+           "by_length", "limit_ratio_steps", "place_ratio_steps", "junction_loss_s", "extruder_capped"]
 
 #: after a change of extrusion ratio, segments keep the extrusion of their reference time until its
 #: ratio comes within this share of the group's (see :func:`by_length`)

@@ -166,9 +166,9 @@ def corner_lead(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMo
 
 def corner_lead_free(a: int, b: int, X: np.ndarray, mv: PlannedMove | None, on_plan: np.ndarray | None,
                      lead_pt: np.ndarray | None, prev: PlannedMove | None, fw_accel_mm_s2: float, tol_mm: float):
-    """How a free motion run (samples ``a .. b - 1``, off the plan within the corner's reach) that leaves the plan's
-    corner begins, the run before having ended on that corner (pinned up to it: :func:`rest_end`):
-    ``(n, None, None)``, its first ``n`` samples dropped, or None to keep them.
+    """How a free motion run (samples ``a .. b - 1``, off the plan within the corner's reach) that
+    leaves the plan's corner begins, the run before having ended on that corner (pinned up to it:
+    :func:`rest_end`): ``(n, None, None)``, its first ``n`` samples dropped, or None to keep them.
 
     The mirror of :func:`corner_lead` for a command that leaves the plan at the corner (a
     retracting travel into a lift the correction moves): written as sampled, its first chord is a
@@ -504,9 +504,6 @@ def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: Plan
     if np.linalg.norm(c1 * (1.0 - w)) >= tol_mm:
         return None
     n_tail = int(b - 1 > a and np.linalg.norm(X[b - 1] - corner) < REST_POINT_NEAR_MM)
-    # the chord into the corner no faster than the one before it (the plan brakes into the corner;
-    # a command a micrometre or two behind it there would have to speed up into it: a random
-    # file on other_delta asked 15 mm/s after 7 and ran its approach 0.45 ms early)
     # the chord into the corner: one the firmware can run in its time while braking to the plan's
     # speed at the corner (the shortest: entered at the speed it can brake from within its length).
     # A command a few micrometres behind the plan there would have to catch up: a random file on

@@ -167,7 +167,6 @@ def extruder_limit_lines(op: LimitsChange) -> list[str]:
     return out
 
 
-
 def _plan_corner_v(moves: list, srun: np.ndarray, first_seg: np.ndarray, start_pt: np.ndarray) -> np.ndarray:
     """The plan's speed (mm/s) at the start of each written segment that starts a run on its plan
     move's start point (the plan's corner, as the writer placed it: printed to 0.1 um) and follows
@@ -186,6 +185,7 @@ def _plan_corner_v(moves: list, srun: np.ndarray, first_seg: np.ndarray, start_p
     near = np.linalg.norm(start_pt[q] - st, axis=1) < 1e-3
     out[q[near]] = [mv.start_v_mm_s for (_, mv), n in zip(ok, near.tolist()) if n]
     return out
+
 
 class GcodeWriter:
     """Streams the compensated body of a G-code file.
@@ -894,10 +894,11 @@ class GcodeWriter:
 
     def _free_corner(self, k0: int, a: int, b: int, nxt, X: np.ndarray, mv, k_plan, on_plan):
         """:func:`~ffcomp.gcode.plan_clock.free_corner` into the next run ``nxt`` (a motion run of
-        the next move that starts at ``b``) with the firmware's limits; None where either side of the
+        the next move that starts at ``b``) with the firmware's limits; where either side of the
         corner follows the plan (pinned: :func:`~ffcomp.gcode.plan_clock.corner_lead` and
         :func:`~ffcomp.gcode.plan_clock.corner_tail` take those; a free side into a pinned lift,
-        merged the same way, ran its chord late: up to +0.41 ms on random files)."""
+        merged the same way, ran its chord late: up to +0.41 ms on random files), only a free
+        command into a pinned one, :func:`~ffcomp.gcode.plan_clock.free_into_pinned`."""
         a2, b2, _, mv2, kind2, _ = nxt
         if mv is None or kind2 != MOVE or mv2 is None or a2 != b or mv2.index != mv.index + 1:
             return None
