@@ -13,7 +13,6 @@ from ffcomp.gcode.plan_clock import (
     corner_segment_mm,
     corner_tail,
     free_corner,
-    free_into_pinned,
     plan_speeds,
     rest_end,
     rest_start,
@@ -206,45 +205,6 @@ def test_a_free_run_leaving_the_plans_corner_drops_the_samples_within_its_reach(
     # a command on the line: nothing to drop
     S[:, 0] = 0.0
     assert corner_lead_free(0, 12, S, up, np.ones(12, bool), lead, below, 3000.0, 5e-3) is None
-
-
-def test_a_free_run_into_a_pinned_one_ends_on_the_plans_corner():
-    """A free command (off the plan before the corner) into a pinned lift (on the plan after it):
-    the run ends on the plan's corner point at the plan's time, where the command passes within
-    the tolerance of it and the firmware can run its chord into it in time (braking to the plan's
-    corner speed at the acceleration ``lim`` gives it); not where the command lags the corner (the
-    chord would need more than its time), nor with a pinned side before."""
-    from ffcomp.gcode.chain_plan import ChainLimits
-    from ffcomp.profile import default_profile
-
-    lim = ChainLimits(default_profile(), 3000.0, 5.0)
-    down, _ = _corner_down(v_j=5.0, t0=0.0303)
-    # 0.1 mm at 5 mm/s into the corner
-    travel = PlannedMove(0, 1, "move", 0.0103, (-0.1, 0.0, 1.0, 0.0), (0.0, 0.0, 1.0, 0.0), 0.1, (1.0, 0.0, 0.0, 0.0),
-                         5.0, 5.0, 5.0, 3000.0, 0.0, 0.02, 0.0)
-    k = np.arange(0, 50)
-    b = int(np.ceil(0.0303 / DT))  # the lift's first sample
-    X = np.zeros((len(k), 3))
-    t = k * DT
-    X[:b, 0] = -np.array([travel.distance_mm - travel.distance_at(x) for x in t[:b]])
-    X[:b, 2] = 1.0
-    X[b:, 2] = 1.0 - np.array([down.distance_at(x) for x in t[b:]])
-    X[:b, 1] = 5e-4  # the travel's correction: 0.5 um off the plan
-    on = np.r_[np.zeros(b, bool), np.ones(len(k) - b, bool)]
-    got = free_into_pinned(DT, 100, 0, b, X, travel, down, k, on, lim=lim)
-    assert got is not None
-    (pt, k_end, e, appended), n_tail, m = got
-    np.testing.assert_allclose(pt, [0.0, 0.0, 1.0])
-    assert k_end == pytest.approx(100 + travel.t_end_s / DT) and appended == 1 and m == 0
-    assert n_tail == int(np.linalg.norm(X[b - 1] - pt) < REST_POINT_NEAR_MM)
-    assert free_into_pinned(DT, 100, 0, b, X, travel, down, k, np.ones(len(k), bool)) is None  # pinned before
-    lag = X.copy()
-    lag[b - 1, 0] -= 1.5e-3  # 1.5 um behind: 3 um in 0.3 ms, braking to 5 mm/s at 3000 mm/s^2 takes 0.52
-    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on) is not None  # (without the limits)
-    assert free_into_pinned(DT, 100, 0, b, lag, travel, down, k, on, lim=lim) is None
-    far = X.copy()
-    far[:b, 1] = 0.01  # 10 um off the plan's corner
-    assert free_into_pinned(DT, 100, 0, b, far, travel, down, k, on) is None
 
 
 def test_a_slow_lifts_first_point_may_lie_in_its_cruise():

@@ -558,12 +558,13 @@ def test_the_timing_state_carries_dwells_and_feeds_as_written(profile):
     assert fs.dwell_as_written(1.2345678e-3) == pytest.approx(1.235e-3, abs=1e-15)
 
 
-def _random_file_drift(tmp_path, text: str, profile) -> tuple[float, float]:
-    """Largest and final drift (ms) of a small file's compensated output (self-check limits lifted)."""
+def _random_file_drift(tmp_path, text: str, profile, repair=None) -> tuple[float, float]:
+    """Largest and final drift (ms) of a small file's compensated output (self-check limits lifted;
+    ``repair``: a :class:`~ffcomp.compensate.pin_repair.RepairConfig` other than the default)."""
     src = tmp_path / "r.gcode"
     src.write_text(text)
-    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile,
-                        CompensateOptions(predict=False, self_check_drift_ms=1e9))
+    opts = CompensateOptions(predict=False, self_check_drift_ms=1e9, **({} if repair is None else {"repair": repair}))
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), profile, opts)
     return s.self_check_drift_ms, s.self_check_drift_end_ms
 
 
@@ -1351,30 +1352,29 @@ PLAN_CORNER_CASES = [
                  "G1 Z5.528 F5704\nG1 X-0.969 Y8.799 Z6.716 F6463\nG1 E-0.8 F2100\n"
                  "G1 X-11.162 Y-13.812 Z8.471 F11969\nG1 Z11.654 E1.4997 F10148\n",
                  ("extrusion", "PLAN_STEP_SLACK", 0.0), -0.546, id="ratio-step-at-the-plans-corner"),
-    # a free travel into a pinned extruding lift: one chord straddled the corner, the lift's
-    # change of ratio came a sample late, where the plan already speeds up
+    # a printed travel into a pinned extruding lift: one chord straddled the corner, the lift's
+    # change of ratio came a sample late, where the plan already speeds up (the approach now leads in
+    # on the plan, as a dry travel's does)
     pytest.param("other", "G90\nM83\nG28\nG1 X-8.287 Y-26.900 Z6.755 F13078\nG1 X9.726 Y-10.997 E1.3165 F14648\n"
                  "G1 E-0.8 F2100\nG1 X-4.265 Y22.532 Z7.330 E1.3223 F6031\nG1 Z7.718 E1.7194 F1498\n"
                  "G1 Z8.563 F6976\nG1 E-0.8 F2100\nG1 X26.470 Y-25.731 Z9.004 F13358\n",
-                 ("writer", "FREE_INTO_PINNED", False), -0.432, id="free-into-pinned-ratio"),
+                 ("repair", "lead_in_wet", False), -0.432, id="wet-lead-in-ratio"),
     # the same with a turn into the lift at 5 mm/s (square_corner_velocity)
     pytest.param("other", "G90\nM83\nG1 X-5.523 Y-1.933 Z1.443 F10519\nG1 X6.085 Y4.526 E-0.9650 F1740\n"
                  "G1 X-31.142 Y2.233 E1.0279 F2648\nG1 X1.951 Y19.696 Z2.385 E1.8792 F14862\n"
                  "G1 Z5.240 E0.1733 F8313\nG1 X27.423 Y14.126 Z7.261 F7281\n",
-                 ("writer", "FREE_INTO_PINNED", False), -0.262, id="free-into-pinned-turn"),
-    # a retracting travel into an extruding lift whose chords pass Klipper's corner rules (the
-    # writer looks at it anyway), the command 2.9 um off the plan's corner (within the 5 um tolerance)
+                 ("repair", "lead_in_wet", False), -0.262, id="wet-lead-in-turn"),
+    # a retracting travel into an extruding lift on the default profile
     pytest.param("default", "G90\nM83\nG28\nG1 X-23.709 Y26.374 Z0.837 F14936\nG1 X-8.801 Y-32.342 F14511\n"
                  "G1 X24.806 Y-14.343 F4660\nG1 X2.372 Y-22.361 E-0.8195 F14861\nG1 Z1.879 E1.4694 F11417\n"
                  "G1 X-0.088 Y-1.893 Z3.628 E-0.8025 F2979\nG1 X-2.082 Y-11.230 Z5.754 E0.6805 F6251\n"
                  "G1 X-0.607 Y-0.026 F5578\n",
-                 ("writer", "FREE_INTO_PINNED", False), -0.520, id="free-into-pinned-ratio-default"),
-    # ... where the free command is 2 um behind the plan's corner: a chord into it in 0.18 ms that the
-    # firmware needs 0.63 ms for would run the approach early, so the straddling chord stays (the guard)
-    pytest.param("other", "G90\nM83\nG1 X-1.094 Y-12.373 Z2.174 F7364\nG1 Z5.930 E1.1371 F3125\n"
-                 "G1 X-13.002 Y-36.669 Z9.571 E-0.7220 F12508\nG1 X-28.061 Y-23.697 Z11.932 E0.6920 F5775\n"
-                 "G1 Z15.922 E1.4386 F6307\n",
-                 ("plan_clock", "FREE_INTO_PINNED_SLACK_S", 1.0), -0.451, id="free-into-pinned-guard"),
+                 ("repair", "lead_in_wet", False), -0.520, id="wet-lead-in-default"),
+    # a printed line into a retracting lift the plan enters at icv / 1.18 = 0.85 mm/s; the free
+    # command came into the corner at 11 mm/s
+    pytest.param("other", "G90\nM83\nG28\nG1 X-33.892 Y-16.767 Z0.420 F10276\nG1 X21.478 Y6.567 Z0.665 E1.1198 F4546\n"
+                 "G1 Z1.367 E-0.8178 F2694\nG1 X4.803 Y8.732 Z1.758 F3947\n",
+                 ("repair", "lead_in_wet", False), -0.933, id="wet-lead-in-retracting-lift"),
     # a pinned retracting travel into a free lift: the lift's first chord (1.2 um) capped the corner
     # at 3.5 mm/s, the plan passes it at 9.2
     pytest.param("default", "G90\nM83\nG28\nG1 X2.025 Y2.245 Z3.942 F9919\nG1 X0.553 Y-0.010 Z6.080 E-0.3736 F4822\n"
@@ -1394,20 +1394,25 @@ PLAN_CORNER_CASES = [
 def test_a_corner_the_plan_passes_slowly_is_written_where_and_as_the_plan_takes_it(
         tmp_path, monkeypatch, profile, which, text, switch, before_ms):
     """The thirty-third round's corners (``docs/gcode_clock.md``): a change of extrusion ratio the
-    plan takes at its corner is stepped there (``extrusion.by_length``'s ``plan_v_mm_s``); a free
-    command into a pinned one ends on the plan's corner (``plan_clock.free_into_pinned``, unless the
-    firmware cannot run its chord into the corner in time); a free command out of the plan's corner drops
-    the samples within the corner's reach, on a straight plan those within a small turn's reach
+    plan takes at its corner is stepped there (``extrusion.by_length``'s ``plan_v_mm_s``); a printed
+    line into a pinned lift that extrudes or retracts leads in on the plan
+    (``RepairConfig.lead_in_wet``); a free command out of the plan's corner drops the samples within
+    the corner's reach, on a straight plan those within a small turn's reach
     (``plan_clock.corner_lead_free``).  Each file within 0.2 ms, and each case reproduces without
     its rule."""
-    from ffcomp.gcode import extrusion, plan_clock, writer
+    from ffcomp.compensate.pin_repair import RepairConfig
+    from ffcomp.gcode import extrusion, writer
 
     prof = profile if which == "default" else load_profile(OTHER)
     drift_ms, _ = _random_file_drift(tmp_path, text, prof)
     assert abs(drift_ms) < 0.2, drift_ms
     mod, name, off = switch
-    monkeypatch.setattr({"extrusion": extrusion, "writer": writer, "plan_clock": plan_clock}[mod], name, off)
-    before, _ = _random_file_drift(tmp_path, text, prof)
+    repair = None
+    if mod == "repair":
+        repair = RepairConfig(**{name: off})
+    else:
+        monkeypatch.setattr({"extrusion": extrusion, "writer": writer}[mod], name, off)
+    before, _ = _random_file_drift(tmp_path, text, prof, repair)
     assert before == pytest.approx(before_ms, abs=0.05)  # the case
 
 
@@ -1429,26 +1434,3 @@ def test_the_travel_to_the_start_ends_where_the_first_segment_starts(tmp_path, p
     words = lambda ln: dict((w[0], w[1:]) for w in ln.split(";")[0].split()[1:])  # noqa: E731
     assert (words(out[k])["X"], words(out[k])["Y"]) == (words(first)["X"], words(first)["Y"])
 
-
-def test_a_printed_line_into_a_retracting_lift_leads_in_on_the_plan(tmp_path):
-    """A printed line into a retracting lift that the plan enters at the extruder's junction speed
-    (``icv / |diff_r|`` = 0.85 mm/s; a random file on other_delta): the free command came into the
-    corner at 11 mm/s, the firmware braked for the ratio step and the pinned lift ran late, 0.93 ms
-    with the feed solve's anticipation.  The line's last ``lead_in_printed_s`` now follow the plan
-    (``RepairConfig.lead_in_wet``), as a travel's do."""
-    from ffcomp.compensate.pin_repair import RepairConfig
-
-    text = ("G90\nM83\nG28\nG1 X-33.892 Y-16.767 Z0.420 F10276\nG1 X21.478 Y6.567 Z0.665 E1.1198 F4546\n"
-            "G1 Z1.367 E-0.8178 F2694\nG1 X4.803 Y8.732 Z1.758 F3947\n")
-    src = tmp_path / "r.gcode"
-    src.write_text(text)
-    prof = load_profile(OTHER)
-
-    def drift(wet: bool) -> float:
-        s = compensate_file(str(src), str(tmp_path / "o.gcode"), prof,
-                            CompensateOptions(predict=False, self_check_drift_ms=1e9,
-                                              repair=RepairConfig(lead_in_wet=wet)))
-        return s.self_check_drift_ms
-
-    assert abs(drift(True)) < 0.2
-    assert drift(False) < -0.8  # the case: -0.93 ms

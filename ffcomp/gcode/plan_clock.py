@@ -20,7 +20,7 @@ from .chain_plan import junction_v2, segment_limits
 from .moves import MOVE, PlannedMove
 
 __all__ = ["rest_end", "rest_start", "corner_lead", "corner_lead_free", "corner_tail", "corner_segment_mm",
-           "free_corner", "free_into_pinned", "sampled_corners_ok", "plan_speeds",
+           "free_corner", "sampled_corners_ok", "plan_speeds",
            "REST_POINT_NEAR_MM",
            "CORNER_LEAD_MAX_MM"]
 
@@ -458,64 +458,6 @@ def free_corner(dt: float, k0: int, a: int, b: int, b_next: int, X: np.ndarray, 
         return None
     k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
     return (pc, k_end, float(mv.end_mm[3]), 1), n, m
-
-
-#: the firmware's shortest time for :func:`free_into_pinned`'s chord into the corner may exceed its
-#: share of the sample by this much, s (the feed solve spreads that little: travels into extruding
-#: lifts asked 0.38 and 0.57 ms of chords that need 0.51 and 0.73, and kept the clock 0.4 and
-#: 0.14 ms better than the straddling chord; 0.40 and 0.45 ms over ran the approach early)
-FREE_INTO_PINNED_SLACK_S = 2e-4
-
-
-def free_into_pinned(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
-                     next_move: PlannedMove | None, k_plan: np.ndarray | None, on_plan: np.ndarray | None,
-                     tol_mm: float = REST_POINT_NEAR_MM, lim=None):
-    """A corner the plan passes at speed between samples ``k0 + b - 1`` and ``k0 + b`` where a free
-    command (its last sample before the corner off the plan) turns into a pinned one (the next
-    run's first two samples on the plan: a travel into a lift): ``((point mm, time / dt, extruder
-    mm, 1), n_tail, 0)`` as :func:`free_corner` gives it, or None.
-
-    Written as sampled, one chord straddles the corner: the firmware's junction after it (a kink
-    into the lift, or the lift's change of extrusion ratio) caps the speed below the plan's at
-    the lift's first sample, and the lift, ramping at ``max_z_accel``, never makes it up (the
-    feed solve ran the travel up to 0.43 ms early to share the lateness: random files on
-    other_delta).  The run ends instead on the plan's corner point at the plan's time, so the
-    next run starts on its move's start and :func:`corner_lead` places its first point as the
-    plan passes it; the firmware then turns where and as fast as the plan does.  Only where the
-    command, interpolated to the corner's time, lies within ``tol_mm`` of the plan's corner (the
-    writer's point tolerance; the correction there is what the pin repair left, a micrometre or a
-    few) and (given ``lim``, a :class:`~ffcomp.gcode.chain_plan.ChainLimits`) the chord into the
-    corner has no less time than the firmware needs to run it braking to the plan's corner speed,
-    less :data:`FREE_INTO_PINNED_SLACK_S`; a last sample within :data:`REST_POINT_NEAR_MM` of the
-    corner gives it its place (``n_tail`` 1).
-    """
-    if (mv is None or next_move is None or next_move.kind != MOVE or mv.kind != MOVE or k_plan is None
-            or on_plan is None or b < 2 or b - a < 2 or b + 1 >= len(X) or mv.end_v_mm_s <= 1e-9
-            or on_plan[b - 1] or not (on_plan[b] and on_plan[b + 1])):
-        return None
-    if k_plan[b - 1] < 0 or k_plan[b] != k_plan[b - 1] + 1 or abs(next_move.t_start_s - mv.t_end_s) > 1e-9:
-        return None
-    t1, t2 = k_plan[b - 1] * dt, k_plan[b] * dt
-    if not (t1 < mv.t_end_s - 1e-9 and mv.t_end_s <= t2 + 1e-12 and t2 < next_move.t_end_s):
-        return None
-    corner = np.array(mv.end_mm[:3], float)
-    w = (mv.t_end_s - t1) / dt
-    c1 = X[b - 1] - _plan_point(mv, t1)
-    if np.linalg.norm(c1 * (1.0 - w)) >= tol_mm:
-        return None
-    n_tail = int(b - 1 > a and np.linalg.norm(X[b - 1] - corner) < REST_POINT_NEAR_MM)
-    # the chord into the corner: one the firmware can run in its time while braking to the plan's
-    # speed at the corner (the shortest: entered at the speed it can brake from within its length).
-    # A command a few micrometres behind the plan there would have to catch up: a random file on
-    # other_delta asked 0.18 ms of a chord that needs 0.63 ms, and ran its approach 0.45 ms early
-    L = float(np.linalg.norm(X[b - 1] - corner))
-    if lim is not None and not n_tail and L > 1e-9:
-        acc = float(segment_limits(lim, X[b - 1][None], corner[None], np.zeros(1))[1][0])
-        v_j = mv.end_v_mm_s
-        if (np.sqrt(v_j * v_j + 2.0 * acc * L) - v_j) / acc > w * dt + FREE_INTO_PINNED_SLACK_S:
-            return None
-    k_end = mv.t_end_s / dt + (k0 + b - 1 - int(k_plan[b - 1]))
-    return (corner, k_end, float(mv.end_mm[3]), 1), n_tail, 0
 
 
 def sampled_corners_ok(lim, X: np.ndarray, bs: np.ndarray, dt: float) -> np.ndarray:

@@ -56,7 +56,6 @@ from .plan_clock import (
     corner_lead_free,
     corner_tail,
     free_corner,
-    free_into_pinned,
     plan_speeds,
     rest_end,
     rest_start,
@@ -591,7 +590,7 @@ class GcodeWriter:
                 end = rest_end(self.dt, k0, b, X, mv, k_plan, on_plan,
                                self.moves.get(mv.index + 1) if mv is not None else None)
                 free = None
-                if end is None and (r in look or self._into_pinned(b, on_plan)):
+                if end is None and r in look:
                     free = self._free_corner(k0, a, b, runs[r + 1], X, mv, k_plan, on_plan)
                 if free is not None:
                     end, n_tail, free_lead = free
@@ -883,29 +882,18 @@ class GcodeWriter:
         ok = sampled_corners_ok(self.chain, X, np.array([runs[r].end for r in rs]), self.dt)
         return {r for r, o in zip(rs, ok.tolist()) if not o}
 
-    @staticmethod
-    def _into_pinned(b: int, on_plan) -> bool:
-        """Whether a free run ending at sample ``b`` meets a pinned one there (its last sample off the
-        plan, the next two on it): :func:`~ffcomp.gcode.plan_clock.free_into_pinned` looks at it
-        whether or not the sampled chords pass Klipper's corner rules (the junction a straddling
-        chord spoils may be the extruder's: a travel into an extruding lift)."""
-        return (FREE_INTO_PINNED and on_plan is not None and 1 <= b < len(on_plan) - 1 and not on_plan[b - 1]
-                and bool(on_plan[b]) and bool(on_plan[b + 1]))
-
     def _free_corner(self, k0: int, a: int, b: int, nxt, X: np.ndarray, mv, k_plan, on_plan):
         """:func:`~ffcomp.gcode.plan_clock.free_corner` into the next run ``nxt`` (a motion run of
-        the next move that starts at ``b``) with the firmware's limits; where either side of the
+        the next move that starts at ``b``) with the firmware's limits; None where either side of the
         corner follows the plan (pinned: :func:`~ffcomp.gcode.plan_clock.corner_lead` and
         :func:`~ffcomp.gcode.plan_clock.corner_tail` take those; a free side into a pinned lift,
-        merged the same way, ran its chord late: up to +0.41 ms on random files), only a free
-        command into a pinned one, :func:`~ffcomp.gcode.plan_clock.free_into_pinned`."""
+        merged the same way, ran its chord late: up to +0.41 ms on random files; the pin repair's
+        lead-in pins the free side where it comes into such a lift: ``RepairConfig.lead_in_wet``)."""
         a2, b2, _, mv2, kind2, _ = nxt
         if mv is None or kind2 != MOVE or mv2 is None or a2 != b or mv2.index != mv.index + 1:
             return None
         if on_plan is not None and on_plan[b - 1:b + 2].any():  # a pinned side: corner_lead / corner_tail
-            # (a free command into a pinned one: the plan's corner, then corner_lead)
-            return free_into_pinned(self.dt, k0, a, b, X, mv, mv2, k_plan, on_plan, self.tol, self.chain) \
-                if FREE_INTO_PINNED else None
+            return None
         return free_corner(self.dt, k0, a, b, b2, X, mv, mv2, k_plan, self.chain, self.tol)
 
     def _corner_lead(self, k0: int, a: int, b: int, X: np.ndarray, mv, k_plan, on_plan, lead_pt):
@@ -1067,9 +1055,6 @@ CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 #: pinned lift before the travel (a user's tower on other_delta: +0.58 ms)
 CARRY_TAIL_PASSES = 3
 
-#: a free command's run into a pinned one ends on the plan's corner
-#: (:func:`~ffcomp.gcode.plan_clock.free_into_pinned`; a switch for the tests)
-FREE_INTO_PINNED = True
 #: a free run that leaves the plan's corner drops its first samples within the corner's reach
 #: (:func:`~ffcomp.gcode.plan_clock.corner_lead_free`; a switch for the tests)
 FREE_CORNER_LEAD = True
