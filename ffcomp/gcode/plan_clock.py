@@ -186,42 +186,39 @@ def corner_lead_free(a: int, b: int, X: np.ndarray, mv: PlannedMove | None, on_p
     if np.linalg.norm(np.round(start, 4) - lead_pt) >= 1e-3:
         return None
     reach = corner_segment_mm(prev.unit, mv.unit, mv.start_v_mm_s, fw_accel_mm_s2)
-    if reach is None:
-        return _straight_lead(a, b, X, mv, start, fw_accel_mm_s2, tol_mm)
-    d = np.linalg.norm(X[a:min(b, a + CORNER_LEAD_MAX_SAMPLES)] - start, axis=1)
-    beyond = np.nonzero(d >= reach)[0]
-    if not beyond.size:
-        return None
-    m = int(beyond[0])
-    if m == 0 or m > b - a - 3 or on_plan[a:a + m + 1].all() or _off_chord(X[a:a + m], start, X[a + m]) > tol_mm:
+    if reach is None:  # a straight plan: the command's own small turn at its first samples
+        m = _straight_lead(a, b, X, mv.start_v_mm_s, start, fw_accel_mm_s2)
+    else:
+        d = np.linalg.norm(X[a:min(b, a + CORNER_LEAD_MAX_SAMPLES)] - start, axis=1)
+        beyond = np.nonzero(d >= reach)[0]
+        if not beyond.size or on_plan[a:a + int(beyond[0]) + 1].all():  # (on the plan: corner_lead's)
+            return None
+        m = int(beyond[0])
+    if m == 0 or m > b - a - 3 or _off_chord(X[a:a + m], start, X[a + m]) > tol_mm:
         return None
     return m, None, None
 
 
-def _straight_lead(a: int, b: int, X: np.ndarray, mv: PlannedMove, start: np.ndarray, fw_accel_mm_s2: float,
-                   tol_mm: float):
-    """:func:`corner_lead_free` where the plan runs straight on through the corner (two collinear
-    moves): the first chord, from the corner point to the run's first sample, may be a few
-    micrometres, and where the command turns there by a fraction of a degree (a correction
-    leaving a pinned z move), Klipper's centripetal rule of that chord caps the junction (3.2 um
-    and a 0.7 deg turn: 27 mm/s in a lift at 55 mm/s, which the pinned ramp before it braked for,
-    4.6 ms late on other_delta).  The samples whose chord from the corner is shorter than
-    :func:`corner_segment_mm` of the turn there at the plan's speed go, where they lie within
-    ``tol_mm`` of the chord that replaces them and at least three samples remain."""
-    v = mv.start_v_mm_s
+def _straight_lead(a: int, b: int, X: np.ndarray, v_mm_s: float, start: np.ndarray, fw_accel_mm_s2: float) -> int:
+    """How many of a run's first samples :func:`corner_lead_free` drops where the plan runs straight
+    on through the corner (two collinear moves): the first chord, from the corner point to the run's
+    first sample, may be a few micrometres, and where the command turns there by a fraction of a
+    degree (a correction leaving a pinned z move), Klipper's centripetal rule of that chord caps
+    the junction (3.2 um and a 0.7 deg turn: 27 mm/s in a lift at 55 mm/s, which the pinned ramp
+    before it braked for, 4.6 ms late on other_delta).  The samples whose chord from the corner is
+    shorter than :func:`corner_segment_mm` of the turn there at the plan's speed ``v_mm_s`` (with
+    Klipper's own straight-line threshold) go; 0 where two points coincide."""
     m = 0
     while m < min(b - a - 3, CORNER_LEAD_MAX_SAMPLES):
         d_in, d_out = X[a + m] - start, X[a + m + 1] - X[a + m]
         l_in, l_out = float(np.linalg.norm(d_in)), float(np.linalg.norm(d_out))
         if l_in < 1e-6 or l_out < 1e-6:
-            return None
-        reach = corner_segment_mm(d_in / l_in, d_out / l_out, v, fw_accel_mm_s2, straight_cos=-0.999999)
+            return 0
+        reach = corner_segment_mm(d_in / l_in, d_out / l_out, v_mm_s, fw_accel_mm_s2, straight_cos=-0.999999)
         if reach is None or l_in >= reach:
             break
         m += 1
-    if m == 0 or m > b - a - 3 or _off_chord(X[a:a + m], start, X[a + m]) > tol_mm:
-        return None
-    return m, None, None
+    return m
 
 
 def corner_tail(dt: float, k0: int, a: int, b: int, X: np.ndarray, mv: PlannedMove | None,
