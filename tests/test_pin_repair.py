@@ -458,6 +458,35 @@ def test_the_plan_standing_still_next_to_a_steep_pin_is_pinned_too():
     assert not _still_near(np.zeros(30, bool), q, 50).any()
 
 
+def test_the_plans_ramp_at_max_z_accel_after_a_pin_is_pinned_too():
+    """``pin_stream._ramp_near``: the steep samples after a pinned run where the plan's nozzle z
+    accelerates at ``max_z_accel`` (from 95 % of it), through such samples only, at most ``reach``
+    of them; never before the run, nor across a sample below the limit or of a move it does not bind."""
+    from ffcomp.pipeline.pin_stream import _ramp_near
+
+    dt, lim = 1e-3, 3.0
+    n = 60
+    acc = np.zeros(n)
+    acc[5:15] = -lim  # the plan brakes into the pinned run at the limit...
+    acc[20:35] = lim  # ...and ramps away from it: 20 .. 34, then cruises
+    acc[40:45] = 0.96 * lim  # a later ramp, not adjoining
+    v = np.cumsum(acc) * dt
+    z = np.cumsum(v) * dt
+    z = np.r_[0.0, z[:-1]]  # (the second difference at sample k is then acc[k] dt^2)
+    a2 = np.r_[0.0, np.diff(z, 2) / dt**2, 0.0]
+    np.testing.assert_allclose(a2[1:-1], acc[1:-1], atol=1e-9)
+    seed = np.zeros(n, bool)
+    seed[10:20] = True  # the pinned run: 10 .. 19
+    steep = np.ones(n, bool)
+    got = _ramp_near(seed, steep, z, dt, lim, 40)
+    assert np.nonzero(got)[0].tolist() == list(range(20, 35))  # after the run only, up to the cruise
+    assert np.nonzero(_ramp_near(seed, steep, z, dt, lim, 5))[0].tolist() == list(range(20, 25))
+    steep[30:] = False  # a move max_z_accel does not bind from sample 30 on
+    assert np.nonzero(_ramp_near(seed, steep, z, dt, lim, 40))[0].tolist() == list(range(20, 30))
+    assert not _ramp_near(seed, steep, z, dt, 10 * lim, 40).any()  # a ramp under the limit
+    assert not _ramp_near(np.zeros(n, bool), np.ones(n, bool), z, dt, lim, 40).any()
+
+
 def test_a_pinned_lift_after_homing_starts_from_a_command_standing_still(tmp_path):
     """A slicer's start (G28, the lift, a retraction, the move to the first layer): the lift is
     pinned (it runs into the retraction); the free command before it pre-actuated it, and the

@@ -144,6 +144,44 @@ def test_ratio_steps_stay_within_the_extruder_junction_limit():
                                   by_length(e[:m], d[:m], grp[:m], hold[:m]))
 
 
+
+def test_a_ratio_step_a_dry_group_cannot_ramp_is_ramped_at_the_end_of_the_group_before(monkeypatch):
+    """A retracting z move (-0.2 mm/mm) into a dry one, every junction at 40 mm/s: one step of 0.2
+    at the groups' junction caps it at ``icv / 0.2`` = 5 mm/s.  The dry group has no extrusion to
+    take up a ramp at its start, so the retracting group's last segments ramp towards 0 instead
+    (``extrusion.BACK_RAMP``): every junction within ``RATIO_STEP_SHARE * icv / v``, each group's
+    total unchanged, the dry group dry, the retracting group's start (its edge) as it was."""
+    from ffcomp.gcode import extrusion
+    from ffcomp.gcode.extrusion import RATIO_STEP_SHARE, by_length
+
+    n = 300
+    d = np.full(n, 0.04)  # 1 ms segments at 40 mm/s
+    v = np.full(n, 40.0)
+    e = np.r_[np.zeros(20), -0.002, -0.006, np.full(198, -0.008), np.zeros(80)]
+    grp = np.r_[np.zeros(20, int), np.ones(200, int), np.full(80, 2)]
+    hold = np.zeros(n, bool)
+    cap = np.r_[np.zeros(20, bool), np.ones(200, bool), np.zeros(80, bool)]  # (retracting: capped)
+    lim = RATIO_STEP_SHARE * 1.0 / 40.0
+    kw = dict(speed_mm_s=v, icv_mm_s=1.0, capped=cap, e_limits=(120.0, 6000.0))
+    monkeypatch.setattr(extrusion, "BACK_RAMP", False)
+    fwd = by_length(e, d, grp, hold, **kw)
+    assert abs(fwd[220] / d[220] - fwd[219] / d[219]) > 0.19  # the case: one step into the dry group
+    monkeypatch.setattr(extrusion, "BACK_RAMP", True)
+    out = by_length(e, d, grp, hold, **kw)
+    r = out / d
+    assert np.all(np.abs(np.diff(r)) <= lim * (1 + 1e-9)), np.abs(np.diff(r)).max()
+    for g0, g1 in ((0, 20), (20, 220), (220, 300)):
+        assert out[g0:g1].sum() == pytest.approx(e[g0:g1].sum(), rel=1e-12)
+    assert not out[220:].any() and not out[:20].any()
+    start = np.nonzero(np.abs(fwd / d - fwd[100] / d[100]) < 1e-12)[0][0]  # where the forward ramp ends
+    assert 25 < start < 40
+    np.testing.assert_array_equal(out[:start], fwd[:start])  # the retracting group's start as it was
+    assert abs(r[219]) <= lim * 1.0001 and np.ptp(r[50:150]) < 1e-12  # ramped to the dry group; even before
+    assert abs(r[100] / (fwd[100] / d[100]) - 1) < 0.1
+    # with no step at a group's end it changes nothing
+    np.testing.assert_array_equal(by_length(e[:220], d[:220], grp[:220], hold[:220], speed_mm_s=v[:220], icv_mm_s=1.0,
+                                            capped=cap[:220], e_limits=(120.0, 6000.0)), fwd[:220])
+
 def test_a_group_cut_between_chunks_ramps_from_the_last_chunks_ratio():
     """One group (a single source move) whose compensated segments' reference-time extrusion runs at
     0.188 mm/mm over its first half and 0.229 over its second (the command's lead changes along it),

@@ -125,6 +125,13 @@ class RepairConfig:
         (:mod:`ffcomp.compensate.delta_cap`), and so is what a pin window's repair leaves past it.
         The fidelity bench's z travel on other_delta: +0.93 -> +0.12 ms (an XZ reversal, where the
         correction turned the command steeper than the plan while it braked at 10,000 mm/s^2)
+    ramp_pins : the free samples next to a pinned run where the plan's nozzle z acceleration is at
+        ``max_z_accel`` (its ramp in a move that limit binds: a free lift on from a pinned layer
+        change's lift) are pinned too, up to ``2 margin_s``: while the plan ramps at the limit
+        the command cannot take up or give back a correction there at all (the repair's bounded
+        solve finds no feasible command; unbounded, it ramped 100 um in 15 ms, 4,600 mm/s^2 in a
+        3,000 mm/s^2 lift, 2.2 ms off the clock on a random file on other_delta); the repair's window
+        then does it after the ramp
     print_weight : the model's response on the samples where the plan prints (extrudes while it
         moves in XY: what marks the part) counts this many times in the objective; the rest (the hold, a
         lift, the travel) takes more of the change.  ``cube_prusa.gcode`` simulated on
@@ -156,6 +163,7 @@ class RepairConfig:
     lead_in_extruder: bool = True
     lead_in_wet: bool = True
     still_near_steep: bool = True
+    ramp_pins: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0
     cap_windows: bool = True

@@ -180,7 +180,13 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     ``max_extrude_only_velocity / |r|`` and ``max_extrude_only_accel / |r|``, so a higher ratio may
     run slower), unless ``e_limits`` = (``max_extrude_only_velocity``, ``max_extrude_only_accel``)
     shows those caps stay above twice each capped segment's speed and acceleration (estimated from
-    the speed changes to its neighbours) at the new ratios.
+    the speed changes to its neighbours) at the new ratios.  Where a group's start keeps a step
+    beyond the limit after that (a dry group after a retracting z move has no extrusion to take up
+    a ramp: the even-ratio check above refuses it), the same ramp runs backwards over the end of
+    the group before (:data:`BACK_RAMP`): its last segments step towards the new ratio, its even
+    part takes up the difference, its start (edge, or the ramp at its own start) stays.  A
+    retracting lift into a dry one, which the command passes at 17 mm/s where ``icv / |diff_r|``
+    is 5.7, ran 2.2 ms off the clock with one step there.
 
     Parameters
     ----------
@@ -215,6 +221,59 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     n = len(e)
     if n < 2 or icv_mm_s <= 0:
         return e
+    hold = np.asarray(hold, bool)
+    edge = np.asarray(edge, bool)
+    out = _ramp_group_starts(e, dist_mm, speed_mm_s, group, hold, edge, icv_mm_s, share, capped, max_shift,
+                             e_limits, step_ok)
+    if not BACK_RAMP:
+        return out
+    # a change of ratio the ramp at the new group's start could not take (a travel after a
+    # retracting z move: a dry group has no extrusion to take up the ramp's) is ramped at the end
+    # of the group before instead: the same ramp on the reversed segments (for a group whose own
+    # steps are within the limit)
+    ok = ~hold & (dist_mm > 1e-9)
+    r = np.where(ok, out / np.where(ok, dist_mm, 1.0), 0.0)
+    v = np.where(ok, speed_mm_s, 0.0)
+    lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)
+    if step_ok is not None:
+        lim = np.where(np.asarray(step_ok, bool)[1:], np.inf, lim)
+    starts = np.nonzero(group[1:] != group[:-1])[0] + 1
+    left = starts[ok[starts] & ok[starts - 1] & (np.abs(r[starts] - r[starts - 1]) > lim[starts - 1] * 1.0001)]
+    if not left.size:
+        return out
+    prev_start = np.maximum.accumulate(np.where(np.r_[True, group[1:] != group[:-1]], np.arange(n), 0))
+    only = np.zeros(n, bool)  # (reversed) the last segment of each group to ramp at its end
+    keep = edge.copy()  # and the segments the ramp there leaves as they are
+    for g1 in left.tolist():
+        g0 = int(prev_start[g1 - 1])
+        inner = ok[g0:g1 - 1] & ok[g0 + 1:g1]
+        if np.any(inner & (np.abs(np.diff(r[g0:g1])) > lim[g0:g1 - 1] * 1.0001)):
+            continue  # (a group with steps beyond the limit inside: not one the ramps could settle)
+        only[g1 - 1] = True
+        # the group's start up to where its ratio reaches the one it ends on (its edge, or the
+        # ramp at its start) stays; the even part after it takes up the ramp at its end
+        even = ok[g0:g1] & (np.abs(r[g0:g1] - r[g1 - 1]) <= 1e-9 * max(abs(r[g1 - 1]), 1e-12))
+        keep[g0:g0 + (int(np.argmax(even)) if even.any() else g1 - g0)] = True
+    if not only.any():
+        return out
+    rev = slice(None, None, -1)
+    back = _ramp_group_starts(out[rev], dist_mm[rev], speed_mm_s[rev], -group[rev], hold[rev], keep[rev],
+                              icv_mm_s, share, None if capped is None else np.asarray(capped)[rev], max_shift,
+                              e_limits, None if step_ok is None else np.r_[False, np.asarray(step_ok, bool)[::-1][:-1]],
+                              only=only[rev])
+    return np.ascontiguousarray(back[rev])
+
+
+#: :func:`limit_ratio_steps` ramps a change of ratio at the end of the group before where the new
+#: group cannot take the ramp (a switch for the tests)
+BACK_RAMP = True
+
+
+def _ramp_group_starts(e, dist_mm, speed_mm_s, group, hold, edge, icv_mm_s, share, capped, max_shift, e_limits,
+                       step_ok, only: np.ndarray | None = None) -> np.ndarray:
+    """:func:`limit_ratio_steps`' ramps at the groups' starts (``only``: just at the starts marked
+    there); the input array where nothing changed."""
+    n = len(e)
     ok = ~hold & (dist_mm > 1e-9)
     r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
     v = np.where(ok, speed_mm_s, 0.0)
@@ -227,6 +286,8 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     out = e.copy()
     starts = np.nonzero(np.r_[True, group[1:] != group[:-1]])[0]
     for g0, g1 in zip(starts.tolist(), np.r_[starts[1:], n].tolist()):
+        if only is not None and not only[g0]:
+            continue
         cap_g = capped is not None and bool(capped[g0:g1].any())
         if not bad[max(g0 - 1, 0):g1 - 1].any() or (cap_g and e_limits is None):
             continue

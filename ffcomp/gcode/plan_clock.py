@@ -80,8 +80,11 @@ def rest_end(dt: float, k0: int, b: int, X: np.ndarray, mv: PlannedMove | None, 
     return end, k_end, float(mv.end_mm[3]), int(far)
 
 
-#: the farthest :func:`corner_lead` moves a run's first point from its corner, mm
-CORNER_LEAD_MAX_MM = 0.02
+#: the farthest :func:`corner_lead` moves a run's first point from its corner, mm (and the longest
+#: segment :func:`corner_segment_mm` asks for).  0.05 since the thirty-fourth round, 0.02 before: a
+#: free lift on from a pinned layer change's lift, a 44 deg turn the plan takes at 11.4 mm/s, needs
+#: 0.035 mm at ``max_z_accel`` = 3,000; at 0.02 the firmware took it at 8.6 mm/s, 0.64 ms off the clock
+CORNER_LEAD_MAX_MM = 0.05
 #: the most samples :func:`corner_lead` looks at past a corner
 CORNER_LEAD_MAX_SAMPLES = 16
 #: the least distance between the moved first point and the run's second sample, mm (closer, the
@@ -90,13 +93,14 @@ CORNER_LEAD_GAP_MM = 2e-3
 
 
 def corner_segment_mm(u_in, u_out, v_mm_s: float, accel_mm_s2: float,
-                      max_mm: float = CORNER_LEAD_MAX_MM, straight_cos: float = -0.999) -> float | None:
+                      max_mm: float | None = None, straight_cos: float = -0.999) -> float | None:
     """The length (mm) a segment next to a junction needs for Klipper's centripetal rule,
     ``v^2 <= d a tan(theta/2) / 2``, to allow ``v_mm_s`` there: ``2 v^2 / (a tan(theta/2))`` for the
-    inner angle ``theta`` between the directions ``u_in`` and ``u_out``, at most
-    ``max_mm``; None on a (nearly) straight line (Klipper's ``junction_cos_theta`` below
-    ``straight_cos``: by default turns under 2.6 deg; Klipper's own is -0.999999, 0.08 deg) or
-    under a micrometre."""
+    inner angle ``theta`` between the directions ``u_in`` and ``u_out``, at most ``max_mm``
+    (default :data:`CORNER_LEAD_MAX_MM`); None on a (nearly) straight line (Klipper's
+    ``junction_cos_theta`` below ``straight_cos``: by default turns under 2.6 deg; Klipper's own is
+    -0.999999, 0.08 deg) or under a micrometre."""
+    max_mm = CORNER_LEAD_MAX_MM if max_mm is None else max_mm
     jc = -float(np.dot(u_in[:3], u_out[:3]))  # Klipper's junction_cos_theta
     if jc < straight_cos:
         return None
