@@ -1374,7 +1374,8 @@ PLAN_CORNER_CASES = [
     # command came into the corner at 11 mm/s
     pytest.param("other", "G90\nM83\nG28\nG1 X-33.892 Y-16.767 Z0.420 F10276\nG1 X21.478 Y6.567 Z0.665 E1.1198 F4546\n"
                  "G1 Z1.367 E-0.8178 F2694\nG1 X4.803 Y8.732 Z1.758 F3947\n",
-                 ("repair", "lead_in_wet", False), -0.610, id="wet-lead-in-retracting-lift"),
+                 [("repair", "lead_in_wet", False), ("extrusion", "EDGE_RETRACTING", True)], -0.610,
+                 id="wet-lead-in-retracting-lift"),
     # a pinned retracting travel into a free lift: the lift's first chord (1.2 um) capped the corner
     # at 3.5 mm/s, the plan passes it at 9.2 (since the thirty-fourth round the lift's ramp at
     # max_z_accel is pinned too, RepairConfig.ramp_pins, which takes the command there onto the plan)
@@ -1401,7 +1402,8 @@ def test_a_corner_the_plan_passes_slowly_is_written_where_and_as_the_plan_takes_
     (``RepairConfig.lead_in_wet``); a free command out of the plan's corner drops the samples within
     the corner's reach, on a straight plan those within a small turn's reach
     (``plan_clock.corner_lead_free``).  Each file within 0.2 ms, and each case reproduces without
-    its rule (one also needs the thirty-fourth round's ``RepairConfig.ramp_pins`` off)."""
+    its rule (some also need one of the thirty-fourth round's off: ``RepairConfig.ramp_pins``,
+    ``extrusion.EDGE_RETRACTING``)."""
     prof = profile if which == "default" else load_profile(OTHER)
     drift_ms, _ = _random_file_drift(tmp_path, text, prof)
     assert abs(drift_ms) < 0.2, drift_ms
@@ -1432,11 +1434,20 @@ RAMP_CASES = [
                  "G1 Z1.221 E-0.1362 F10975\nG1 Z1.955 E-0.0288 F3202\nG1 Z3.906 F13305\n"
                  "G1 X4.744 Y-28.132 E-0.5319 F13862\nG1 X5.126 Y-14.891 F12054\nG1 E0.8 F2100\n"
                  "G1 X9.266 Y-12.800 F7124\n",
-                 ("extrusion", "BACK_RAMP", False), +0.303, id="back-ramp"),
+                 [("extrusion", "BACK_RAMP", False), ("extrusion", "EDGE_RETRACTING", True)], +0.303,
+                 id="back-ramp"),
     # the same at -0.228 mm/mm: the plan slows to icv / 0.215 = 4.7 mm/s, the command passes at 17
     pytest.param("G90\nM83\nG1 X21.525 Y-8.563 Z1.934 F7040\nG1 Z3.713 F3485\nG1 Z6.004 E-0.4918 F7883\n"
                  "G1 Z9.975 F6436\nG1 X13.958 Y-19.436 Z11.242 E1.3140 F11648\nG1 E-0.8 F2100\n",
-                 ("extrusion", "BACK_RAMP", False), -2.159, id="back-ramp-steep"),
+                 [("extrusion", "BACK_RAMP", False), ("extrusion", "EDGE_RETRACTING", True)], -2.159,
+                 id="back-ramp-steep"),
+    # a retracting travel out of an extruding lift: the command leads the plan there, its segments'
+    # reference-time ratios scattered from -0.05 to -0.10 (the group's -0.074), steps that capped
+    # junctions at 60-110 mm/s; a retracting group now takes its even ratio from its start
+    pytest.param("G90\nM83\nG1 X3.370 Y0.997 Z5.482 F13253\nG1 X1.151 Y-10.538 Z6.596 E1.3228 F14413\n"
+                 "G1 E-0.8 F2100\nG1 Z9.411 E1.1840 F10683\nG1 X5.431 Y-19.363 E-0.7291 F9800\n"
+                 "G1 X5.778 Y8.474 Z12.836 F3294\nG1 X2.386 Y-3.812 Z15.182 E-0.7896 F2933\nG1 E0.8 F2100\n",
+                 ("extrusion", "EDGE_RETRACTING", True), -0.579, id="retracting-edge"),
     # a pinned layer-change lift (an XZ travel after a printed line) into a free z lift that the plan
     # ramps at max_z_accel: the repair took up 100 um of correction within the ramp
     pytest.param("G90\nM83\nG1 X7.904 Y10.798 Z3.344 F4595\nG1 X11.806 Y33.236 E0.9099 F7981\nG1 Z4.083 F12051\n"
@@ -1463,8 +1474,9 @@ def test_a_ramp_at_the_limit_or_a_ratio_step_is_written_as_the_firmware_can_run_
         tmp_path, monkeypatch, text, switch, before_ms):
     """The thirty-fourth round's files (``bench_random_drift.py --n 200 --seed 11``, other_delta,
     ``docs/gcode_clock.md``): a change of ratio the new group cannot ramp is ramped at the end of the
-    group before (``extrusion.BACK_RAMP``); the free samples after a pinned run where the plan ramps
-    at ``max_z_accel`` are pinned too (``RepairConfig.ramp_pins``); a segment out of the plan's corner
+    group before (``extrusion.BACK_RAMP``); a retracting group has no edge
+    (``extrusion.EDGE_RETRACTING``); the free samples after a pinned run where the plan ramps at
+    ``max_z_accel`` are pinned too (``RepairConfig.ramp_pins``); a segment out of the plan's corner
     may be up to 0.05 mm long (``plan_clock.CORNER_LEAD_MAX_MM``).  Each file within 0.2 ms, and each
     case reproduces without its rule."""
     prof = load_profile(OTHER)

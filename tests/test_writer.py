@@ -211,13 +211,16 @@ def test_a_group_cut_between_chunks_ramps_from_the_last_chunks_ratio():
                                   by_length(e_b, d, grp, held, speed_mm_s=v, icv_mm_s=1.0))
 
 
-def test_a_group_that_leaves_a_reversal_takes_its_ratio_at_once():
+def test_a_group_that_leaves_a_reversal_takes_its_ratio_at_once(monkeypatch):
     """A z move down to rest, then up while retracting (ratio -0.27 mm/mm): the reference-time
     extrusion of the first segments up ramps the ratio over several junctions (-0.04, -0.35, then
     the group's), and Klipper caps each of those junctions at ``icv / |diff_r|`` while the carriage
     speeds up.  The junction at the reversal itself is one the corner rule already holds at a
     crawl (``corner_v_mm_s`` ~0): the group takes its even ratio from its first segment there, its
-    total unchanged.  Where the corner rule leaves the junction fast (``inf``), the edge stays."""
+    total unchanged.  Where the corner rule leaves the junction fast (``inf``), the edge stays
+    (with ``EDGE_RETRACTING``; by default a retracting group has no edge: one ratio from its start
+    whatever the corner)."""
+    from ffcomp.gcode import extrusion
     from ffcomp.gcode.extrusion import by_length
 
     d = np.r_[np.linspace(0.04, 0.003, 10), 0.0021, 0.0057, np.linspace(0.017, 0.05, 20)]
@@ -233,8 +236,16 @@ def test_a_group_that_leaves_a_reversal_takes_its_ratio_at_once():
     assert np.ptp(r) < 1e-12 * abs(r[0])  # one ratio from the reversal on
     assert out[10:].sum() == pytest.approx(e[10:].sum(), rel=1e-12)
     np.testing.assert_array_equal(out[:10], e[:10])
-    # without the corner limit (or without it at that junction) the first keeps its own value and
-    # the ratio ramps from there
+    # without the corner limit (or without it at that junction) a retracting group keeps no edge:
+    # its first segments do not keep their reference-time values (the ramp to its ratio, if any, is
+    # limit_ratio_steps')
+    for c in (None, np.full(len(d), np.inf)):
+        nod = by_length(e, d, grp, hold, corner_v_mm_s=c, **kw)
+        assert nod[10] != e[10] and nod[11] != e[11]
+        assert nod[10:].sum() == pytest.approx(e[10:].sum(), rel=1e-12)
+    # with an edge for retractions, the first keeps its own value and the ratio ramps from there
+    monkeypatch.setattr(extrusion, "EDGE_RETRACTING", True)
+    np.testing.assert_array_equal(by_length(e, d, grp, hold, corner_v_mm_s=cv, **kw), out)
     for c in (None, np.full(len(d), np.inf)):
         kept = by_length(e, d, grp, hold, corner_v_mm_s=c, **kw)
         assert kept[10] == e[10] and abs(kept[11] / d[11] - r[0]) > 0.3 * abs(r[0])
