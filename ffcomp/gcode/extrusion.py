@@ -33,7 +33,9 @@ STEP_BACK_S = 0.008
 #: see :func:`by_length`).  Off since the thirty-fourth round: where the command leads or lags the
 #: plan at a travel's start its reference-time ratios scatter (-0.05 .. -0.10 in a -0.074 group), and
 #: those steps capped junctions at 60-110 mm/s (a random file on other_delta 0.58 ms off the clock);
-#: a retraction lays no bead whose place the edge would keep.  (A switch for the tests.)
+#: a retraction lays no bead whose place the edge would keep.  Klipper only (``icv_mm_s`` given): on
+#: Marlin it put 2 more of 40 random files beyond 0.2 ms (``bench_marlin_clock.py``).  (A switch for
+#: the tests.)
 EDGE_RETRACTING = False
 
 #: the written ratio changes by at most this share of ``instantaneous_corner_velocity / v`` at a
@@ -150,7 +152,9 @@ def by_length(de: np.ndarray, dist_mm: np.ndarray, group: np.ndarray, hold: np.n
     reached = np.maximum.accumulate(np.where(near, np.arange(n), -1))
     first = np.maximum.accumulate(np.where(start, np.arange(n), -1))
     edge = (first >= 0) & (reached < first)
-    if not EDGE_RETRACTING:  # a retraction lays no bead to place: its group's ratio is even from its start
+    if not EDGE_RETRACTING and icv_mm_s is not None:
+        # a retraction lays no bead to place: its group's ratio is even from its start (Klipper's
+        # junction rule; on Marlin, whose junctions weigh the extruder otherwise, the edge stays)
         edge &= ~(rho_g[gi] < 0)
     free = ~hold & ~edge
     tot_e = np.bincount(gi, weights=np.where(free, de, 0.0))
