@@ -258,12 +258,19 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     prev_start = np.maximum.accumulate(np.where(np.r_[True, group[1:] != group[:-1]], np.arange(n), 0))
     only = np.zeros(n, bool)  # (reversed) the last segment of each group to ramp at its end
     keep = edge.copy()  # and the segments the ramp there leaves as they are
+    spans = []
+
+    def inside_ok(x, g0, g1, slack):
+        rx = np.where(ok[g0:g1], x[g0:g1] / np.where(ok[g0:g1], dist_mm[g0:g1], 1.0), 0.0)
+        inner = ok[g0:g1 - 1] & ok[g0 + 1:g1]
+        return not np.any(inner & (np.abs(np.diff(rx)) > lim[g0:g1 - 1] * slack))
+
     for g1 in left.tolist():
         g0 = int(prev_start[g1 - 1])
-        inner = ok[g0:g1 - 1] & ok[g0 + 1:g1]
-        if np.any(inner & (np.abs(np.diff(r[g0:g1])) > lim[g0:g1 - 1] * 1.0001)):
+        if not inside_ok(out, g0, g1, 1.0001):
             continue  # (a group with steps beyond the limit inside: not one the ramps could settle)
         only[g1 - 1] = True
+        spans.append((g0, g1))
         # the group's start up to where its ratio reaches the one it ends on (its edge, or the
         # ramp at its start) stays; the even part after it takes up the ramp at its end
         even = ok[g0:g1] & (np.abs(r[g0:g1] - r[g1 - 1]) <= 1e-9 * max(abs(r[g1 - 1]), 1e-12))
@@ -275,7 +282,11 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
                               icv_mm_s, share, None if capped is None else np.asarray(capped)[rev], max_shift,
                               e_limits, None if step_ok is None else np.r_[False, np.asarray(step_ok, bool)[::-1][:-1]],
                               only=only[rev])
-    return np.ascontiguousarray(back[rev])
+    back = np.ascontiguousarray(back[rev])
+    for g0, g1 in spans:  # where the ramp at the end met the kept start with a step, the group stays
+        if not inside_ok(back, g0, g1, 1.1):
+            back[g0:g1] = out[g0:g1]
+    return back
 
 
 #: :func:`limit_ratio_steps` ramps a change of ratio at the end of the group before where the new
