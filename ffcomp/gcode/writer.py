@@ -747,7 +747,7 @@ class GcodeWriter:
                 Pr, d, dist, hold = settle_holds(Pr, i, j, first_seg, offs, last, force=micro)
             self.stats.micro_holds += int(micro.sum())
         groups = flow_groups([runs[q].move for q in run_ids])[srun]
-        capped = np.array([extruder_capped(runs[q].move) for q in run_ids])[srun]
+        capped = np.array([self._caps_bind(runs[q].move) for q in run_ids])[srun]
         ratio_changes = bool(np.any(groups[1:] != groups[:-1]))
         # the last chunk's last segment, where the firmware runs on from it into this chunk's first
         if ratio_prev is not None and (run_ids[0] != 0 or follows_hold[0] or went[0] or rest_go[0]):
@@ -895,6 +895,24 @@ class GcodeWriter:
         if on_plan is not None and on_plan[b - 1:b + 2].any():  # a pinned side: corner_lead / corner_tail
             return None
         return free_corner(self.dt, k0, a, b, b2, X, mv, mv2, k_plan, self.chain, self.tol)
+
+    def _caps_bind(self, mv) -> bool:
+        """Whether the extruder's own caps may bind the written segments of ``mv``
+        (:func:`~ffcomp.gcode.extrusion.extruder_capped`: it retracts, or extrudes without XY travel),
+        judged against the firmware's own limits on Klipper: ``max_extrude_only_velocity / |r|`` and
+        ``max_extrude_only_accel / |r|`` (``r`` the move's ratio, mm of filament per mm) below the
+        header's velocity or acceleration.  A travel that retracts 0.06 mm over 38 mm (caps of 73,000
+        mm/s and 1.8 million mm/s^2) is not capped: its change of ratio into the print move after it
+        may be placed (:func:`~ffcomp.gcode.extrusion.place_ratio_steps`)."""
+        if not extruder_capped(mv):
+            return False
+        if self.chain is None or not CAPS_AGAINST_LIMITS:
+            return True
+        s_, e_ = mv.start_mm, mv.end_mm
+        d = float(np.linalg.norm(np.subtract(e_[:3], s_[:3])))
+        r = abs(e_[3] - s_[3]) / max(d, 1e-12)
+        return bool(self.chain.max_e_velocity < r * self.chain.max_velocity
+                    or self.chain.max_e_accel < r * self.chain.accel)
 
     def _corner_lead(self, k0: int, a: int, b: int, X: np.ndarray, mv, k_plan, on_plan, lead_pt):
         """:func:`~ffcomp.gcode.plan_clock.corner_lead`, or for a free run that leaves the plan's
@@ -1056,6 +1074,11 @@ CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 CARRY_TAIL_PASSES = 3
 
 #: a free run that leaves the plan's corner drops its first samples within the corner's reach
+#: a move :func:`~ffcomp.gcode.extrusion.extruder_capped` calls capped counts as capped for the
+#: extrusion's ramps and steps only where its caps fall below the firmware's own limits
+#: (:meth:`GcodeWriter._caps_bind`; a switch for the tests)
+CAPS_AGAINST_LIMITS = True
+
 #: (:func:`~ffcomp.gcode.plan_clock.corner_lead_free`; a switch for the tests)
 FREE_CORNER_LEAD = True
 
