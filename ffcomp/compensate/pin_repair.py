@@ -125,7 +125,7 @@ class RepairConfig:
         (:mod:`ffcomp.compensate.delta_cap`), and so is what a pin window's repair leaves past it.
         The fidelity bench's z travel on other_delta: +0.93 -> +0.12 ms (an XZ reversal, where the
         correction turned the command steeper than the plan while it braked at 10,000 mm/s^2)
-    ramp_pins : the free samples next to a pinned run where the plan's nozzle z acceleration is at
+    ramp_pins : the free samples right after a pinned run where the plan's nozzle z acceleration is at
         ``max_z_accel`` (its ramp in a move that limit binds: a free lift on from a pinned layer
         change's lift) are pinned too, up to ``2 margin_s``: while the plan ramps at the limit
         the command cannot take up or give back a correction there at all (the repair's bounded

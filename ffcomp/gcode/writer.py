@@ -1073,12 +1073,12 @@ CARRY_TAIL_SAMPLES = CORNER_LEAD_MAX_SAMPLES + 2
 #: pinned lift before the travel (a user's tower on other_delta: +0.58 ms)
 CARRY_TAIL_PASSES = 3
 
-#: a free run that leaves the plan's corner drops its first samples within the corner's reach
 #: a move :func:`~ffcomp.gcode.extrusion.extruder_capped` calls capped counts as capped for the
 #: extrusion's ramps and steps only where its caps fall below the firmware's own limits
 #: (:meth:`GcodeWriter._caps_bind`; a switch for the tests)
 CAPS_AGAINST_LIMITS = True
 
+#: a free run that leaves the plan's corner drops its first samples within the corner's reach
 #: (:func:`~ffcomp.gcode.plan_clock.corner_lead_free`; a switch for the tests)
 FREE_CORNER_LEAD = True
 
