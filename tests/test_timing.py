@@ -1511,6 +1511,24 @@ def test_a_travel_that_barely_retracts_lets_its_change_of_ratio_be_placed(tmp_pa
     assert s.self_check_max_um > 25.0  # the case (31.2 um)
 
 
+def test_a_pinned_lift_that_leaves_rest_after_the_pre_roll_starts_on_its_line(tmp_path, profile):
+    """A file without homing that starts with an extruding z-only lift (pinned: the extruder's limits
+    bind it), after the stream's pre-roll (a random file, ``bench_random_drift.py --n 200 --seed 11``,
+    default profile).  The pre-roll's last sample, free, ended 0.5 um beside the lift's line, so the
+    lift's first segment was an XY move to Klipper, without the extruder's acceleration cap the plan
+    has: 0.3 ms early.  That sample now stands on the plan's rest point
+    (``RepairConfig.rest_before_go``)."""
+    from ffcomp.compensate.pin_repair import RepairConfig
+
+    text = ("G90\nM83\nG1 X28.292 Y-13.443 Z5.449 F14381\nG1 Z6.093 E0.8502 F13873\n"
+            "G1 X-2.404 Y4.521 Z9.457 E1.4815 F5636\nG1 X-20.341 Y-32.186 Z12.816 E0.1522 F6057\n"
+            "G1 X-13.761 Y-6.352 F4492\n")
+    drift_ms, _ = _random_file_drift(tmp_path, text, profile)
+    assert abs(drift_ms) < 0.2, drift_ms
+    before, _ = _random_file_drift(tmp_path, text, profile, RepairConfig(rest_before_go=False))
+    assert before == pytest.approx(-0.305, abs=0.05)  # the case
+
+
 def test_the_travel_to_the_start_ends_where_the_first_segment_starts(tmp_path, profile):
     """A file without homing whose first move after the start is an extruding z move (a random file,
     ``bench_random_drift.py --seed 11``): the travel to the start went to the command's first

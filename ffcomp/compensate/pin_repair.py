@@ -132,6 +132,11 @@ class RepairConfig:
         solve finds no feasible command; unbounded, it ramped 100 um in 15 ms, 4,600 mm/s^2 in a
         3,000 mm/s^2 lift, 2.2 ms off the clock on a random file on other_delta); the repair's window
         then does it after the ramp
+    rest_before_go : where the plan stands still up to a pinned run that leaves rest (an extruding
+        z-only lift right after a stream's pre-roll), the free sample before the run is pinned to
+        that rest point as well.  The pre-roll's pre-actuation ended 0.5 um beside the lift's line,
+        so the lift's first segment was an XY move to Klipper, without the extruder's acceleration
+        cap the plan has: it ran 0.3 ms early (a random file on the default profile)
     print_weight : the model's response on the samples where the plan prints (extrudes while it
         moves in XY: what marks the part) counts this many times in the objective; the rest (the hold, a
         lift, the travel) takes more of the change.  ``cube_prusa.gcode`` simulated on
@@ -164,6 +169,7 @@ class RepairConfig:
     lead_in_wet: bool = True
     still_near_steep: bool = True
     ramp_pins: bool = True
+    rest_before_go: bool = True
     pin_layer_lifts: bool = True
     print_weight: float = 2.0
     cap_windows: bool = True

@@ -173,16 +173,24 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         # the plan comes to rest between two samples before a pinned run where it stands still (a
         # hold): the last sample before the run is pinned too, to the rest position, so the firmware
         # stands there when the hold begins (rather than covering the last sub-sample of motion from
-        # rest after it) and the repair sees it (the command arrives there at the firmware's ramps)
+        # rest after it) and the repair sees it (the command arrives there at the firmware's ramps);
+        # and where the plan stands still up to a pinned run that leaves rest (RepairConfig's
+        # rest_before_go), the sample before it stands on that rest point
         orig = buf_pin & ~buf_rest & ~buf_next
         st = np.nonzero(orig[1:] & ~orig[:-1])[0]  # st free, st + 1 pinned
         st = st[(st + 2 < n) | final]
         if st.size:
             nxt = np.minimum(st + 2, n - 1)
-            still = max_abs3(qref[nxt] - qref[st + 1]) < 1e-9
-            st = st[still & ~buf_rest[st]]
+            hold = max_abs3(qref[nxt] - qref[st + 1]) < 1e-9
+            still = hold.copy()
+            if cfg.rest_before_go:
+                # the plan stands still up to a pinned run that leaves rest (an extruding lift after a
+                # stream's pre-roll): the sample before it stands on that rest point too
+                still |= (st > 0) & (max_abs3(qref[st] - qref[np.maximum(st - 1, 0)]) < 1e-12)
+            sel = still & ~buf_rest[st]
+            st, hold = st[sel], hold[sel]
             buf_rest[st] = buf_pin[st] = True
-            buf_qt[st] = qref[st + 1]
+            buf_qt[st] = np.where(hold[:, None], qref[st + 1], qref[st])
         # a pinned run that moves (a z-hop) up to where its move ends takes the next move's first
         # sample too, on the plan: the writer then ends the run on the plan's corner at its time
         # (the firmware takes the corner as the plan does, not a sample early)
