@@ -181,12 +181,9 @@ def pin_repaired(chunks: Iterable[tuple[np.ndarray, dict]], pin_fn: Callable[[di
         st = st[(st + 2 < n) | final]
         if st.size:
             nxt = np.minimum(st + 2, n - 1)
-            hold = max_abs3(qref[nxt] - qref[st + 1]) < 1e-9
-            still = hold.copy()
-            if cfg.rest_before_go:
-                # the plan stands still up to a pinned run that leaves rest (an extruding lift after a
-                # stream's pre-roll): the sample before it stands on that rest point too
-                still |= (st > 0) & (max_abs3(qref[st] - qref[np.maximum(st - 1, 0)]) < 1e-12)
+            hold = max_abs3(qref[nxt] - qref[st + 1]) < 1e-9  # the plan stands still in the run
+            still = hold | (cfg.rest_before_go & (st > 0)
+                            & (max_abs3(qref[st] - qref[np.maximum(st - 1, 0)]) < 1e-12))  # ... or up to it
             sel = still & ~buf_rest[st]
             st, hold = st[sel], hold[sel]
             buf_rest[st] = buf_pin[st] = True
