@@ -245,12 +245,7 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
     # retracting z move: a dry group has no extrusion to take up the ramp's) is ramped at the end
     # of the group before instead: the same ramp on the reversed segments (for a group whose own
     # steps are within the limit)
-    ok = ~hold & (dist_mm > 1e-9)
-    r = np.where(ok, out / np.where(ok, dist_mm, 1.0), 0.0)
-    v = np.where(ok, speed_mm_s, 0.0)
-    lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)
-    if step_ok is not None:
-        lim = np.where(np.asarray(step_ok, bool)[1:], np.inf, lim)
+    ok, r, _, lim = _junction_limits(out, dist_mm, speed_mm_s, hold, icv_mm_s, share, step_ok)
     starts = np.nonzero(group[1:] != group[:-1])[0] + 1
     left = starts[ok[starts] & ok[starts - 1] & (np.abs(r[starts] - r[starts - 1]) > lim[starts - 1] * 1.0001)]
     if not left.size:
@@ -294,17 +289,25 @@ def limit_ratio_steps(e: np.ndarray, dist_mm: np.ndarray, speed_mm_s: np.ndarray
 BACK_RAMP = True
 
 
+def _junction_limits(e, dist_mm, speed_mm_s, hold, icv_mm_s, share, step_ok):
+    """The moving segments (not holds, with length), their ratios and speeds (0 elsewhere), and each
+    junction's limit on the change of ratio, ``share * icv / max(v_prev, v_next)`` (``inf`` where
+    ``step_ok`` marks the later segment): junction ``j`` joins segments ``j`` and ``j + 1``."""
+    ok = ~hold & (dist_mm > 1e-9)
+    r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
+    v = np.where(ok, speed_mm_s, 0.0)
+    lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)
+    if step_ok is not None:
+        lim = np.where(np.asarray(step_ok, bool)[1:], np.inf, lim)
+    return ok, r, v, lim
+
+
 def _ramp_group_starts(e, dist_mm, speed_mm_s, group, hold, edge, icv_mm_s, share, capped, max_shift, e_limits,
                        step_ok, only: np.ndarray | None = None) -> np.ndarray:
     """:func:`limit_ratio_steps`' ramps at the groups' starts (``only``: just at the starts marked
     there); the input array where nothing changed."""
     n = len(e)
-    ok = ~hold & (dist_mm > 1e-9)
-    r = np.where(ok, e / np.where(ok, dist_mm, 1.0), 0.0)
-    v = np.where(ok, speed_mm_s, 0.0)
-    lim = share * icv_mm_s / np.maximum(np.maximum(v[1:], v[:-1]), 1e-9)  # junction j | j + 1
-    if step_ok is not None:
-        lim = np.where(np.asarray(step_ok, bool)[1:], np.inf, lim)
+    ok, r, v, lim = _junction_limits(e, dist_mm, speed_mm_s, hold, icv_mm_s, share, step_ok)
     bad = ok[1:] & ok[:-1] & (np.abs(np.diff(r)) > lim * 1.0001)
     if not bad.any():
         return e
