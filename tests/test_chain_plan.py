@@ -119,7 +119,7 @@ def test_the_header_states_the_max_z_accel_most_junctions_need():
     """The writer counts each junction's need in 1 % bins; the header's value is the bin's upper edge
     at 99.9 % of them: one junction asking 100 times more (a micrometre chord at a corner) does not
     set it, but a thousandth of them more would."""
-    from ffcomp.gcode.writer import Z_NEED_EDGES, WriterStats
+    from ffcomp.gcode.writer_stats import Z_NEED_EDGES, WriterStats
 
     st = WriterStats()
     needs = np.r_[np.full(1998, 1000.0), np.full(2, 1e5)]

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from ffcomp.gcode.writer import _breakpoints_runs, adaptive_breakpoints
+from ffcomp.gcode.breakpoints import adaptive_breakpoints, breakpoints_runs
 
 
 @settings(max_examples=60, deadline=None)
@@ -19,7 +19,7 @@ def test_batched_breakpoints_equal_run_by_run(lengths, seed, tol):
     last = first + np.array(lengths) - 1
     keep = np.zeros(len(P), bool)
     keep[first] = keep[last] = True
-    got = np.nonzero(_breakpoints_runs(P, first, last, tol, keep))[0]
+    got = np.nonzero(breakpoints_runs(P, first, last, tol, keep))[0]
     want = np.concatenate([f + adaptive_breakpoints(r, tol) for f, r in zip(first, runs)])
     np.testing.assert_array_equal(got, want)
 

@@ -1,7 +1,7 @@
 """Least-squares values of the G-code writer's points (the firmware interpolates between them).
 
 The writer chooses its points among the compensated samples (Douglas-Peucker in time,
-:func:`ffcomp.gcode.writer.adaptive_breakpoints`), and the firmware moves in a straight line at
+:func:`ffcomp.gcode.breakpoints.adaptive_breakpoints`), and the firmware moves in a straight line at
 constant speed between two points: time-linear interpolation.  Interpolating *through* samples of
 a curved command leaves the chord on one side of the curve all along a bend (a parabola's chord
 misses it by ``c s (1 - s)``, ``c/6`` on average), a slow, one-sided error the printer follows

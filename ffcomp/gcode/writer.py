@@ -36,18 +36,19 @@ the compensated nozzle positions, and every other line kept in place.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import IO, Iterator, NamedTuple
 
 import numpy as np
 
 from ..linalg3 import max_abs3
-from .chain_plan import ChainLimits, corner_v2, segment_limits, z_accel_needed
+from .breakpoints import breakpoints_runs
+from .chain_plan import ChainLimits, corner_v2, segment_limits
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
 from .holds import merged_ramp_holds, merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
+from .passthrough import passthrough_lines
 from .plan_clock import (
     CORNER_LEAD_MAX_SAMPLES,
     FREE_CORNER_STRAIGHT_COS,
@@ -61,110 +62,15 @@ from .plan_clock import (
     rest_start,
     sampled_corners_ok,
 )
-from .records import ArcMove, FirmwareMove, GcodeLine, LimitsChange, LinearMove, ModeChange, Stop
+from .records import FirmwareMove, GcodeLine
+from .segment_lines import SEG_COLS, format_segments
 from .signature import SIGNATURE_EVERY_LINES, SIGNATURE_LINE
+from .writer_stats import WriterStats, add_segments
 
-#: the bins of :attr:`WriterStats.z_need_hist`, mm/s^2 (1 % wide, 1 to 1e8)
-Z_NEED_EDGES = np.geomspace(1.0, 1e8, 1853)
-
-__all__ = ["WriterStats", "GcodeWriter", "adaptive_breakpoints", "BAKED_MODES", "SEG_COLS"]
+__all__ = ["GcodeWriter"]
 
 #: an extruder-only move is written up to this much faster than planned (s), for the catch-up after it
 EXTRUDE_SPARE_S = 3e-3
-
-#: columns of the writer's segment table: body line, first and last sample, catch-up flag, stream,
-#: and where the segment starts and ends past those samples (a rest start or end between samples), ns
-SEG_COLS = 7
-
-#: a segment line, with and without extrusion; below F100 the feed gets six decimals (a slow
-#: segment's duration needs them)
-_SEG_E, _SEG_E_SLOW = "G1 X%.4f Y%.4f Z%.4f E%.5f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f E%.5f F%.6f\n"
-_SEG, _SEG_SLOW = "G1 X%.4f Y%.4f Z%.4f F%.3f\n", "G1 X%.4f Y%.4f Z%.4f F%.6f\n"
-
-#: ModeChange names whose effect is baked into the output (the line is commented out)
-BAKED_MODES = {"absolute_coord", "absolute_extrude", "set_position", "gcode_offset", "speed_factor",
-               "extrude_factor", "units_mm_per_unit", "plane", "feedrate_mm_s"}
-
-
-def adaptive_breakpoints(P: np.ndarray, tol: float) -> np.ndarray:
-    """Indices (including 0 and len-1) such that time-linear interpolation between consecutive
-    breakpoints stays within ``tol`` of every point of ``P`` (shape (n, d)); Douglas-Peucker in time."""
-    n = len(P)
-    if n <= 2:
-        return np.arange(n)
-    keep = np.zeros(n, bool)
-    keep[0] = keep[-1] = True
-    stack = [(0, n - 1)]
-    while stack:
-        i, j = stack.pop()
-        if j - i < 2:
-            continue
-        f = (np.arange(i + 1, j) - i) / (j - i)
-        lerp = P[i] + f[:, None] * (P[j] - P[i])
-        d = max_abs3(P[i + 1:j] - lerp)
-        k = int(np.argmax(d))
-        if d[k] > tol:
-            mid = i + 1 + k
-            keep[mid] = True
-            stack.append((i, mid))
-            stack.append((mid, j))
-    return np.nonzero(keep)[0]
-
-
-@dataclass
-class WriterStats:
-    """What the writer did (for the closing summary)."""
-
-    segments: int = 0
-    motion_lines_replaced: int = 0
-    lines_passed: int = 0
-    lines_commented: int = 0
-    lines_skipped: int = 0
-    extrude_moves: int = 0
-    holds: int = 0
-    #: short rest-to-rest moves the firmware could not run in their time, written as holds
-    micro_holds: int = 0
-    peak_speed_mm_s: float = 0.0
-    peak_accel_mm_s2: float = 0.0
-    #: largest max_z_accel a junction between segments needs to run at the intended speeds
-    #: (:func:`~ffcomp.gcode.chain_plan.z_accel_needed`)
-    peak_z_accel_mm_s2: float = 0.0
-    #: junctions between moving segments, and those that need more than the profile's max_z_accel
-    junctions: int = 0
-    z_accel_short: int = 0
-    #: how many junctions need each max_z_accel (counts in the bins of :data:`Z_NEED_EDGES`; those
-    #: with no z need are not counted): :meth:`z_accel_quantile`
-    z_need_hist: np.ndarray = field(default_factory=lambda: np.zeros(len(Z_NEED_EDGES) - 1, np.int64))
-    #: largest speed along a segment with z travel times ``|dz| / d``: the max_z_velocity it needs
-    peak_z_velocity_mm_s: float = 0.0
-    #: moving segments that reach Klipper's slow zone at the rim (``slow_xy2``), where printer.cfg's
-    #: max_velocity and max_accel cap them
-    rim_segments: int = 0
-    extruded_mm: float = 0.0
-    notes: list = field(default_factory=list)
-
-    def z_accel_quantile(self, share: float) -> float:
-        """The max_z_accel (mm/s^2; a bin's upper edge, within 1 %) that ``share`` of the junctions
-        with a z need need at most; 0 if none."""
-        total = int(self.z_need_hist.sum())
-        if total == 0:
-            return 0.0
-        k = int(np.searchsorted(np.cumsum(self.z_need_hist), share * total - 1e-9))
-        return float(Z_NEED_EDGES[k + 1])
-
-
-def extruder_limit_lines(op: LimitsChange) -> list[str]:
-    """The Marlin commands that keep the extruder limits of a limit command ``op`` in force (the
-    plan was timed with them, and they protect the extruder): the retraction acceleration (M204 R),
-    the E axis's acceleration (M201 E) and feed rate (M203 E)."""
-    out = []
-    if op.retract_accel_mm_s2 is not None:
-        out.append(f"M204 R{op.retract_accel_mm_s2:g}")
-    for cmd, axes in (("M201", op.max_accel_axes_mm_s2), ("M203", op.max_feedrate_axes_mm_s)):
-        if axes is not None and len(axes) > 3 and axes[3] is not None:
-            out.append(f"{cmd} E{axes[3]:g}")
-    return out
-
 
 def _plan_corner_v(moves: list, srun: np.ndarray, first_seg: np.ndarray, start_pt: np.ndarray) -> np.ndarray:
     """The plan's speed (mm/s) at the start of each written segment that starts a run on its plan
@@ -226,8 +132,8 @@ class GcodeWriter:
         self.replaced: set[int] = set()  # source line numbers written as motion (not yet flushed past)
         self.n_replaced = 0  # source line numbers written as motion and forgotten
         self.done_moves: set[int] = set()  # planned move indices written
-        self.prev_v = None
-        self.prev_seg = None  # (vector mm, duration s) of the last moving segment written
+        #: (velocity mm/s, vector mm, duration s) of the last moving segment written (its statistics)
+        self.prev_seg: tuple | None = None
         self.after_hold = False
         self.at_rest_end = False  # the last motion run ended on the plan's rest point (rest_end)
         #: (extrusion ratio, length mm, intended speed mm/s) of the last segment written where the
@@ -282,28 +188,8 @@ class GcodeWriter:
             if ln is None or ln.lineno >= upto:
                 return
             self.next_line = None
-            op = ln.op
-            raw = ln.raw if ln.raw.endswith("\n") else ln.raw + "\n"
-            if isinstance(op, (LinearMove, ArcMove, FirmwareMove)):
-                if ln.lineno not in self.replaced:  # produced no planned motion (zero length)
-                    w("; ffcomp (no motion): " + raw)
-                continue
-            if ln.error is not None:  # a lenient parse skipped it: it must not run
-                w("; ffcomp (skipped): " + raw)
-                self.stats.lines_skipped += 1
-                continue
-            if isinstance(op, LimitsChange) or (isinstance(op, ModeChange) and op.name in BAKED_MODES) or (
-                    isinstance(op, Stop) and op.baked):
-                w("; ffcomp (baked in): " + raw)
-                self.stats.lines_commented += 1
-                if isinstance(op, LimitsChange) and self.extruder_limits:
-                    for cmd in extruder_limit_lines(op):
-                        w(cmd + " ; ffcomp: the source's extruder limit (the plan was timed with it)\n")
-                continue
-            if op is not None and type(op).__name__ == "Dwell":
-                continue  # written with its planned move, in time order
-            w(raw)
-            self.stats.lines_passed += 1
+            for text in passthrough_lines(ln, self.replaced, self.extruder_limits, self.stats):
+                w(text)
 
     # ------------------------------------------------------------------ samples
     def feed(self, k0: int, xyz_mm: np.ndarray, e_mm: np.ndarray, move_index: np.ndarray,
@@ -675,7 +561,7 @@ class GcodeWriter:
         if dense is not None:  # samples written one by one (the plan where limits bind: on its clock)
             keep |= dense[src]
         forced = keep.copy()
-        keep = _breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
+        keep = breakpoints_runs(P, np.where(catch, offs + 1, offs), last, self.tol, keep)
         # a first sample within a micrometre of the run's lead point (leaving rest on time, or
         # just past a corner the previous run ended on) would be a hold: a stop of the firmware,
         # and the segment after it would start from rest a sample late: it is not a point
@@ -808,51 +694,10 @@ class GcodeWriter:
         elif not at_rest_end and not hold[-1] and dist[-1] > 1e-9:
             self.ratio_prev = (float(de[-1] / dist[-1]), float(dist[-1]), float(dist[-1] / dt[-1]))
         # ---- statistics
-        moving = ~hold
-        self.stats.holds += int(hold.sum())
-        self.stats.segments += int(moving.sum())
-        self.stats.extruded_mm += float(np.sum(np.maximum(de[moving], 0.0)))
-        if moving.any():
-            dm, tm = d[moving], dt[moving]
-            vv = dm / tm[:, None]
-            self.stats.peak_speed_mm_s = max(self.stats.peak_speed_mm_s, float(v[moving].max()))
-            if self.chain is not None:
-                xy2 = np.maximum(np.einsum("ij,ij->i", Pr[i][moving, :2], Pr[i][moving, :2]),
-                                 np.einsum("ij,ij->i", Pr[j][moving, :2], Pr[j][moving, :2]))
-                self.stats.rim_segments += int(np.count_nonzero(xy2 > self.chain.slow_xy2))
-            if self.prev_v is not None:
-                vv = np.vstack([self.prev_v[None], vv])
-                dm, tm = np.vstack([self.prev_seg[0][None], dm]), np.r_[self.prev_seg[1], tm]
-            if len(vv) > 1:
-                acc = np.linalg.norm(np.diff(vv, axis=0), axis=1) / np.maximum(dt[moving][-len(vv) + 1:], self.dt)
-                self.stats.peak_accel_mm_s2 = max(self.stats.peak_accel_mm_s2, float(acc.max()))
-                sp = np.linalg.norm(vv[1:], axis=1)
-                uz = np.abs(vv[1:, 2]) / np.maximum(sp, 1e-12)
-                zneed = z_accel_needed(dm, tm, self.chain.jd if self.chain is not None else None)
-                self.stats.peak_z_accel_mm_s2 = max(self.stats.peak_z_accel_mm_s2, float(np.max(zneed)))
-                self.stats.junctions += len(zneed)
-                self.stats.z_accel_short += int(np.count_nonzero(zneed > self.max_z_accel * (1 + 1e-9)))
-                zn = zneed[zneed > 0]
-                if zn.size:
-                    self.stats.z_need_hist += np.histogram(np.clip(zn, Z_NEED_EDGES[0], Z_NEED_EDGES[-1] * 0.999),
-                                                           Z_NEED_EDGES)[0]
-                self.stats.peak_z_velocity_mm_s = max(self.stats.peak_z_velocity_mm_s, float(np.max(sp * uz)))
-            self.prev_v, self.prev_seg = vv[-1], (dm[-1], float(tm[-1]))
+        self.prev_seg = add_segments(self.stats, Pr[i], Pr[j], d, dt, v, de, hold, self.prev_seg, self.chain,
+                                     self.max_z_accel, self.dt)
         # ---- the lines (one per segment) and the self-check's table
-        xs, ys, zs = (Pr[j] + 0.0).T.tolist()  # (+ 0.0: a coordinate rounded to -0.0 prints as 0.0000)
-        pfmt = ".0f" if self.chain is None else ".3f"  # Klipper's G4 P takes fractions of a ms
-        lines = []
-        app = lines.append
-        for x, y, z, e, f, h, t in zip(xs, ys, zs, de.tolist(), (v * 60).tolist(), hold.tolist(), v.tolist()):
-            if h:  # a hold's value: the extruder's feed, or the dwell's duration
-                if abs(e) > 1e-9:
-                    app(f"G1 E{e:.5f} F{f:.3f}\n")
-                else:
-                    app(f"G4 P{t * 1000:{pfmt}}\n")
-            elif abs(e) > 1e-9:
-                app((_SEG_E if f >= 100 else _SEG_E_SLOW) % (x, y, z, e, f))
-            else:
-                app((_SEG if f >= 100 else _SEG_SLOW) % (x, y, z, f))
+        lines = format_segments(Pr[j], de, v, hold, fractional_dwell=self.chain is not None)
         ch.lines = lines
         cnt = np.bincount(srun, minlength=len(n_s))
         ends = np.cumsum(cnt)
@@ -861,7 +706,7 @@ class GcodeWriter:
         local = np.arange(len(i)) - (ends - cnt)[srun] + 1  # line of the segment within its run
         cu = catch[srun] & (i == offs[srun])
         ka, kb = np.floor(K[i] + 1e-9), np.floor(K[j] + 1e-9)
-        rows = moving & (kb > ka)  # a segment to a rest end between two samples stands for none
+        rows = ~hold & (kb > ka)  # a segment to a rest end between two samples stands for none
         fa, fb = np.round((K[i] - ka) * self.dt * 1e9), np.round((K[j] - kb) * self.dt * 1e9)
         ch.seg_rows = np.stack([local, ka, kb, cu.astype(np.int64), np.full(len(i), self.stream), fa, fb],
                                1)[rows].astype(np.int64)
@@ -1164,42 +1009,3 @@ class _Chunk:
         self.run_stop = [False] * n_runs  # a G4 (at least P0) before a motion run: it leaves from a stop
         self.seg_rows = np.zeros((0, SEG_COLS), np.int64)
         self.seg_run = np.zeros(0, np.int64)
-
-
-def _breakpoints_runs(P: np.ndarray, first: np.ndarray, last: np.ndarray, tol: float,
-                      keep: np.ndarray) -> np.ndarray:
-    """:func:`adaptive_breakpoints` on many runs of ``P`` at once (the same points as run by run).
-
-    Run ``r`` spans ``P[first[r]:last[r] + 1]``; ``keep`` marks the points kept already (at least
-    each run's ends).  The Douglas-Peucker recursion runs breadth first: every open interval of
-    every run is split in the same vectorised pass.
-    """
-    I, J = np.asarray(first), np.asarray(last)
-    sel = J - I >= 2
-    I, J = I[sel], J[sel]
-    cols = [np.ascontiguousarray(P[:, c]) for c in range(P.shape[1])]  # (1-D passes are faster)
-    while len(I):
-        L = J - I - 1
-        st = np.cumsum(L) - L
-        rep = np.repeat(np.arange(len(I)), L)
-        pos = np.arange(int(L.sum())) - np.repeat(st - I - 1, L)
-        f = (pos - I[rep]) / (J - I)[rep]
-        dev = None  # max over the columns of |P - lerp|, lerp = P_I + f (P_J - P_I)
-        for Pc in cols:
-            PI = Pc[I]
-            d = np.abs(Pc[pos] - (PI[rep] + f * (Pc[J] - PI)[rep]))
-            dev = d if dev is None else np.maximum(dev, d)
-        mx = np.maximum.reduceat(dev, st)
-        hit = np.nonzero(dev == mx[rep])[0]
-        firsthit = hit[np.concatenate(([True], rep[hit[1:]] != rep[hit[:-1]]))]
-        split = firsthit[mx[rep[firsthit]] > tol]
-        if not len(split):
-            break
-        iv = rep[split]
-        mid = pos[split]
-        keep[mid] = True
-        I = np.concatenate([I[iv], mid])
-        J = np.concatenate([mid, J[iv]])
-        sel = J - I >= 2
-        I, J = I[sel], J[sel]
-    return keep

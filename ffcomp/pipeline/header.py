@@ -102,7 +102,7 @@ def firmware_needs(profile, opts, accel: float, stats) -> FirmwareNeeds:
 def limit_warnings(profile, needs: FirmwareNeeds, stats=None, drift_ms: float | None = None,
                    clock_um: float | None = None) -> list[str]:
     """Warnings for profile limits below what the file's segments would need to run unslowed, each
-    saying which, by how much, where (``stats``, the writer's :class:`~ffcomp.gcode.writer.WriterStats`:
+    saying which, by how much, where (``stats``, the writer's :class:`~ffcomp.gcode.writer_stats.WriterStats`:
     how many junctions need more max_z_accel) and what it cost: the self-check's largest drift on the
     absolute clock (ms) and distance from the intended command at the same instant (um), when it ran.
     None where the self-check measured a drift within :data:`QUIET_DRIFT_MS`: the firmware slows at

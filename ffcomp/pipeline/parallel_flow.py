@@ -34,7 +34,8 @@ from multiprocessing.connection import wait
 import numpy as np
 
 from ..errors import SelfCheckError
-from ..gcode.writer import SEG_COLS, WriterStats
+from ..gcode.segment_lines import SEG_COLS
+from ..gcode.writer_stats import WriterStats
 from ..io_atomic import make_temp, release_temp
 from .compensate_flow import JUMP_M, BodyResult, CompensationSummary, Piece, write_body
 from .header import firmware_needs, header_lines

@@ -12,7 +12,7 @@ from ..errors import SelfCheckError
 from ..gcode.klipper_chains import BLOCK, MoveBlock
 from ..gcode.moves import MOVE
 from ..gcode.planner import GcodePlan
-from ..gcode.writer import SEG_COLS
+from ..gcode.segment_lines import SEG_COLS
 from ..kinematics import inverse
 from ..linalg3 import max_abs3
 
