@@ -103,7 +103,7 @@ def profile_shares(path: Path, n_lines: int = 12000) -> None:
     import inspect
 
     from ffcomp.compensate import pin_repair as prp
-    from ffcomp.compensate.stream import StreamingInverse
+    from ffcomp.compensate.stream_inverse import StreamingInverse
     from ffcomp.gcode.writer import GcodeWriter
     from ffcomp.pipeline import compensate_flow as cf
     from ffcomp.pipeline import predictor as pr

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.linalg import cho_factor, cho_solve
 
-from ffcomp.compensate.stream import _active_set_qp
+from ffcomp.compensate.qp import active_set_qp
 
 
 def _problem(seed, C=3, nJ=14, m=24):
@@ -45,7 +45,7 @@ def _osqp(G, g, A, lo, hi, C):
 @given(seed=st.integers(0, 2**31 - 1))
 def test_the_active_set_qp_is_the_qp_minimiser(seed):
     G, g, A, lo, hi, solve, c0, C, nJ = _problem(seed)
-    c = _active_set_qp(c0, A, lo, hi, solve, nJ, C)
+    c = active_set_qp(c0, A, lo, hi, solve, nJ, C)
     if c is None:  # (the fallback: allowed, but rare)
         return
     v = A @ c
@@ -62,7 +62,7 @@ def test_the_active_set_qp_is_the_qp_minimiser(seed):
 
 
 def test_most_random_problems_are_solved_exactly():
-    solved = sum(_active_set_qp(p[6], p[2], p[3], p[4], p[5], p[8], p[7]) is not None
+    solved = sum(active_set_qp(p[6], p[2], p[3], p[4], p[5], p[8], p[7]) is not None
                  for p in (_problem(s) for s in range(60)))
     assert solved >= 50
 
@@ -70,7 +70,7 @@ def test_most_random_problems_are_solved_exactly():
 def test_no_broken_row_returns_the_free_minimiser():
     G, g, A, lo, hi, solve, c0, C, nJ = _problem(3)
     v0 = A @ c0
-    c = _active_set_qp(c0, A, v0 - 1.0, v0 + 1.0, solve, nJ, C)
+    c = active_set_qp(c0, A, v0 - 1.0, v0 + 1.0, solve, nJ, C)
     assert c is c0
 
 
@@ -82,7 +82,7 @@ def test_a_real_file_on_the_klipper_typical_printer_is_solved_exactly(monkeypatc
     from ffcomp.profile import load_profile
 
     seen = {"calls": 0, "exact": 0}
-    orig = st_mod._active_set_qp
+    orig = st_mod.active_set_qp
 
     def spy(*a, **k):
         out = orig(*a, **k)
@@ -90,7 +90,7 @@ def test_a_real_file_on_the_klipper_typical_printer_is_solved_exactly(monkeypatc
         seen["exact"] += out is not None
         return out
 
-    monkeypatch.setattr(st_mod, "_active_set_qp", spy)
+    monkeypatch.setattr(st_mod, "active_set_qp", spy)
     s = compensate_file("samples/gcode/cube_prusa.gcode", str(tmp_path / "o.gcode"),
                         load_profile("samples/profiles/other_delta.toml"))
     assert seen["calls"] > 50 and seen["exact"] >= 0.9 * seen["calls"]
@@ -116,7 +116,7 @@ def test_the_osqp_fallback_gives_the_same_command(monkeypatch, tmp_path):
         calls["n"] += 1
         return None
 
-    monkeypatch.setattr(st_mod, "_active_set_qp", give_up)
+    monkeypatch.setattr(st_mod, "active_set_qp", give_up)
     fallback = compensate_file(src, str(tmp_path / "b.gcode"), prof)
     assert calls["n"] > 0
     assert fallback.rms_after_um == pytest.approx(exact.rms_after_um, rel=0.02)

@@ -8,7 +8,7 @@ from trajectories import square, trapezoid_path
 
 from ffcomp.compensate.inverse import InverseConfig, _derivatives, invert
 from ffcomp.compensate.predict import predict_lpv
-from ffcomp.compensate.stream import StreamingInverse
+from ffcomp.compensate.stream_inverse import StreamingInverse
 from ffcomp.kinematics import inverse, jacobian
 
 

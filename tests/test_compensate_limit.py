@@ -16,7 +16,8 @@ from ffcomp.compensate.inverse import InverseConfig, inertia_split, invert, mech
 from ffcomp.compensate.kernels import mech_arrays
 from ffcomp.compensate.limit import limit_commands
 from ffcomp.compensate.ltv import simulate_lti
-from ffcomp.compensate.stream import StreamingInverse, _command_shapes
+from ffcomp.compensate.stream import _command_shapes
+from ffcomp.compensate.stream_inverse import StreamingInverse
 from ffcomp.kinematics import carriage_rates, inverse
 from ffcomp.linalg3 import matvec3
 from ffcomp.sim import metrics

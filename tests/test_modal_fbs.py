@@ -9,7 +9,8 @@ import pytest
 from ffcomp.compensate.inverse import InverseConfig
 from ffcomp.compensate.kernels import mech_kernels, mech_tail_samples
 from ffcomp.compensate.modal_fbs import MODES, ModalFbs, modal_split
-from ffcomp.compensate.stream import FbsStream, StreamingInverse
+from ffcomp.compensate.stream import FbsStream
+from ffcomp.compensate.stream_inverse import StreamingInverse
 from ffcomp.kinematics import inverse
 from ffcomp.model.lpv import LpvModel
 from ffcomp.profile import default_profile, load_profile

@@ -393,7 +393,7 @@ def test_ctrl_c_during_an_osqp_solve_is_not_lost():
     import osqp
     import scipy.sparse as sp
 
-    from ffcomp.compensate.stream import _osqp_solve
+    from ffcomp.compensate.qp import osqp_solve
     from ffcomp.errors import Interrupted
 
     n = 300
@@ -412,7 +412,7 @@ def test_ctrl_c_during_an_osqp_solve_is_not_lost():
                     s = osqp.OSQP()
                     s.setup(P=P, q=rng.standard_normal(n), A=sp.identity(n, format="csc"), l=-np.ones(n),
                             u=np.ones(n), verbose=False, eps_abs=1e-10, eps_rel=1e-10, max_iter=100000)
-                    _osqp_solve(s)
+                    osqp_solve(s)
             except Interrupted as e:
                 assert e.exit_code == 130
                 return

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ffcomp.compensate.stream import StreamingInverse
+from ffcomp.compensate.stream_inverse import StreamingInverse
 from ffcomp.gcode.sampler import concat_blocks, sample_gcode
 from ffcomp.kinematics import forward
 from ffcomp.model.lpv import LpvModel

@@ -26,7 +26,7 @@ from scipy.sparse import csr_matrix
 from ..kinematics import forward, jacobian
 from ..linalg3 import sq_norm3
 from .pin_repair import MAX_BOUND_CHANGE_M, STILL_M_S, XY_SHARE, RepairConfig, _cached, _operator, _second_difference
-from .stream import _active_set_qp
+from .qp import active_set_qp
 
 __all__ = ["DeltaCap", "cap_breaks", "cap_window", "jacobian_table", "CAP_SHARE", "CAP_SLACK", "EDGE_ACROSS_SHARE"]
 
@@ -276,7 +276,7 @@ def cap_window(H: np.ndarray, c: np.ndarray, J: np.ndarray, J_rows: np.ndarray, 
         return c
     D2 = _second_difference(op.S)[samp]  # (R, nf)
     A = np.hstack([DJ[:, j:j + 1] * D2 for j in range(3)])  # carriage-major
-    zv = _active_set_qp(np.zeros(3 * op.nf), csr_matrix(A), -lim - base, lim - base,
+    zv = active_set_qp(np.zeros(3 * op.nf), csr_matrix(A), -lim - base, lim - base,
                         lambda r: cho_solve(op.factor, r, check_finite=False), 3 * op.nf, 1)
     if zv is None or not np.all(np.isfinite(zv)) or float(np.max(np.abs(zv))) > MAX_BOUND_CHANGE_M:
         return c

@@ -38,7 +38,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import csc_matrix, csr_matrix
 
 from ..errors import SolverError
-from .stream import _active_set_qp, _osqp_solve
+from .qp import active_set_qp, osqp_solve
 
 __all__ = ["PinnedOptimum", "pinned_optimum", "response_matrix"]
 
@@ -162,12 +162,12 @@ def _boxed(y: np.ndarray, free: np.ndarray, fixed: np.ndarray, G: np.ndarray, rh
         return y[free]
     A = csr_matrix(rows[:, free])
     lo, hi = -room - shift, room - shift
-    c = _active_set_qp(y[free], A, lo, hi, lambda r: cho_solve(factor, r, check_finite=False), int(free.sum()), 1)
+    c = active_set_qp(y[free], A, lo, hi, lambda r: cho_solve(factor, r, check_finite=False), int(free.sum()), 1)
     if c is None:  # (a cycle or a degenerate working set) OSQP, to its tolerance
         prob = osqp.OSQP()
         prob.setup(csc_matrix(np.triu(G)), -rhs, A.tocsc(), lo, hi, verbose=False, eps_abs=1e-12,
                    eps_rel=1e-10, max_iter=20000, polishing=True)
-        res = _osqp_solve(prob)
+        res = osqp_solve(prob)
         if res.info.status not in ("solved", "solved inaccurate"):
             raise SolverError(f"hold bound: the acceleration QP was not solved (OSQP: {res.info.status})")
         c = res.x

@@ -36,7 +36,7 @@ from scipy.sparse import csr_matrix
 
 from ..kinematics import reachable
 from ..model.lpv import LpvModel, state_space
-from .stream import _active_set_qp
+from .qp import active_set_qp
 
 #: factorised windows kept by :func:`repair_window` (an LRU cache; about 1 MB each)
 MAX_CACHED_WINDOWS = 256
@@ -459,7 +459,7 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     difference moves with the free knots, and there the command turns into a pinned lift (a layer
     change after a printed line on ``cube_prusa.gcode``, other_delta: the command came into the lift
     at 7,500 mm/s^2 in x/y where the cap was 5,000, and Klipper ran it 0.5 ms off the clock).  One small QP
-    (:func:`~ffcomp.compensate.stream._active_set_qp`) on the window's normal equations.
+    (:func:`~ffcomp.compensate.qp.active_set_qp`) on the window's normal equations.
     """
     n, nf = op.S.shape
     # where the firmware's segments run steep or nearly stand still: a flat segment's cap,
@@ -503,7 +503,7 @@ def _z_bounded(op: _Operator, c: np.ndarray, o: np.ndarray, z0: np.ndarray, pin:
     v = A @ zvec0 + base
     if np.all(np.abs(v) <= lim * 1.02):
         return None
-    zv = _active_set_qp(zvec0, csr_matrix(A), -lim - base, lim - base,
+    zv = active_set_qp(zvec0, csr_matrix(A), -lim - base, lim - base,
                         lambda r: cho_solve(op.factor, r, check_finite=False), 3 * nf, 1)
     # a working set the window's normal equations barely resist (bounds that fight one another on
     # a few knots) gave knots metres away: such a solve is no repair

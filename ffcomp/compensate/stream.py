@@ -1,13 +1,12 @@
-"""Streaming inverse: the default two-stage FBS compensation in bounded memory.
+"""The streaming windowed solver of the inverse, with its bounds.
 
 :class:`FbsStream` is the windowed solver of :mod:`.fbs` turned inside out: targets are fed in
 chunks, windows are solved as soon as their data (plus preview) is there, committed coefficients
 are turned into final spline values, and everything older than one kernel length is dropped.
-:class:`StreamingInverse` chains the mechanics stage and the three drive stages on top of it.
-
-Only the ``lpv`` and ``lti-centre`` methods stream (their normal equations are identical in every
-window); the other variants of :mod:`.inverse` hold the trajectory in memory and exist to measure
-the accuracy/time trade-off.
+Where the least-squares solution breaks the command's bounds (deviation, carriage velocity and
+acceleration, Klipper's delta cap near z moves) the window is solved again as a QP (:mod:`.qp`).
+:class:`~ffcomp.compensate.stream_inverse.StreamingInverse` chains the mechanics stage and the
+three drive stages on top of it.
 """
 
 from __future__ import annotations
@@ -18,24 +17,12 @@ import numpy as np
 from scipy.fft import irfft, next_fast_len, rfft
 from scipy.linalg import cho_factor, cho_solve
 
-from ..errors import Interrupted, SolverError
-from ..linalg3 import cross3
-from ..model.lpv import LpvModel
+from ..errors import SolverError
 from .bspline import UniformBasis
-from .differ import SplineDerivatives
 from .fbs import _dense_basis
-from .inverse import InverseConfig, LtiStream, _round_to, inertia_split, inverse_dynamics_force, mech_target
-from .kernels import (
-    DriveFilter,
-    drive_kernel,
-    drive_tail_samples,
-    mech_arrays,
-    mech_kernels,
-    mech_tail_samples,
-)
-from .modal_fbs import ModalFbs, modal_split
+from .qp import active_set_qp, osqp_solve
 
-__all__ = ["FbsStream", "StreamingInverse"]
+__all__ = ["FbsStream"]
 
 #: ``FbsStream._surely_within``'s default: the window's common-mode band is computed there
 _OWN = object()
@@ -56,18 +43,6 @@ def _command_shapes(basis: UniformBasis) -> tuple[np.ndarray, np.ndarray, np.nda
     v = (s[2:] - s[:-2]) / (2.0 * dt)
     a = (s[2:] - 2.0 * s[1:-1] + s[:-2]) / dt**2
     return s[1:-1], v, a
-
-
-def _osqp_solve(solver):
-    """``solver.solve()`` that keeps Ctrl-C: OSQP installs its own SIGINT handler while it iterates,
-    so a Ctrl-C then only ends the solve (status ``"interrupted"``) and never reaches Python's
-    handler; it is raised here as :class:`~ffcomp.errors.Interrupted` (the run stops, exit 130)."""
-    res = solver.solve(raise_error=False)
-    if res.info.status == "interrupted":
-        import signal
-
-        raise Interrupted(signal.SIGINT)
-    return res
 
 
 class FbsStream:
@@ -268,10 +243,10 @@ class FbsStream:
         * with several channels, ``components`` (called as ``components(pos, vel, acc)`` with the
           rows' nozzle positions fed as ``poses`` (m) and the reference's channel velocities and
           accelerations; returns the rows' matrices (R, K, C) and limits (R, K), m/s^2, e.g.
-          :func:`nozzle_components`: the nozzle's acceleration along and across the path, with
-          Klipper's ``max_z_accel / |u_z|``) and the rows' poses: those components of the command
-          stay within their limits (or the reference's own value where it exceeds them), one QP over
-          the channels;
+          :func:`~ffcomp.compensate.nozzle_limits.nozzle_components`: the nozzle's acceleration
+          along and across the path, with Klipper's ``max_z_accel / |u_z|``) and the rows' poses:
+          those components of the command stay within their limits (or the reference's own value
+          where it exceeds them), one QP over the channels;
         * otherwise every channel's spline acceleration ``s''`` is kept in ``[-A - a_z, A - a_z]``
           with ``A = max(limit, |a_z|)``, which keeps the command's z acceleration
           ``a_z + sum_i w_i s_i''`` within ``A`` whatever the weights (stricter: it also holds
@@ -417,7 +392,7 @@ class FbsStream:
             hi = np.concatenate([D - e0[:, ch], Vb[:, ch] - v0, a_hi[:, ch] - e2[:, ch]])
             solver.update(q=-g[:, ch] * sc / gn, l=lo / rn, u=hi / rn)
             solver.warm_start(x=c[:, ch] / sc)
-            res = _osqp_solve(solver)
+            res = osqp_solve(solver)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if band is not None and (not ok or res.x is None or not np.all(np.isfinite(res.x))):
                 # the committed past leaves no room for the common-mode band: the plain bounds only
@@ -426,7 +401,7 @@ class FbsStream:
                 hi[2 * R:] = Ab[:, ch] - aref[:, ch] - e2[:, ch]
                 solver.update(l=lo / rn, u=hi / rn)
                 solver.warm_start(x=c[:, ch] / sc)
-                res = _osqp_solve(solver)
+                res = osqp_solve(solver)
                 ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             if not ok or res.x is None or not np.all(np.isfinite(res.x)):
                 raise SolverError(
@@ -523,7 +498,7 @@ class FbsStream:
             return osqp_parts
 
         def solve(lo, hi, rows=slice(None)):
-            cv = _active_set_qp(c_free, A_raw[rows], lo[rows], hi[rows], g_solve, nJ, C)
+            cv = active_set_qp(c_free, A_raw[rows], lo[rows], hi[rows], g_solve, nJ, C)
             if cv is not None:
                 self.qp_exact += 1
                 return cv / sc
@@ -533,7 +508,7 @@ class FbsStream:
                          u=hi[rows] / rn[rows], verbose=False, warm_starting=True, eps_abs=1e-5, eps_rel=1e-5,
                          max_iter=4000, polishing=False)
             solver.warm_start(x=x0)
-            res = _osqp_solve(solver)
+            res = osqp_solve(solver)
             ok = res.info.status in ("solved", "solved inaccurate", "maximum iterations reached")
             return res.x if ok and res.x is not None and np.all(np.isfinite(res.x)) else None
 
@@ -638,332 +613,7 @@ class FbsStream:
             self.off += cut
 
 
-def nozzle_components(geom, xyz_m: np.ndarray, qd: np.ndarray, qdd: np.ndarray, z_limit: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """What Klipper's delta rule bounds, per sample, in terms of the carriages' accelerations.
-
-    Klipper caps a segment's acceleration at ``a_seg = max_z_accel * d/|dz| = z_limit / |u_z|``
-    for the path direction ``u``: along the path the nozzle accelerates at most ``a_seg``; across
-    it, the junction rule (the centripetal ``v^2 <= d a tan(theta/2) / 2`` of short segments)
-    keeps the turning acceleration within ``a_seg`` too.  To first order the nozzle's acceleration
-    is ``J q''`` (``J = dX/dq``); the components are taken along and across the reference's
-    direction (the command's differs from it by the small correction).
-
-    Parameters
-    ----------
-    geom : DeltaGeometry
-    xyz_m : (N, 3) reference nozzle positions, m
-    qd, qdd : (N, 3) reference carriage velocities (m/s) and accelerations (m/s^2)
-    z_limit : float
-        max_z_accel, m/s^2.
-
-    Returns
-    -------
-    M : (N, 3, 3) rows mapping carriage accelerations to the nozzle's acceleration along the path
-        and across it (two normals)
-    L : (N, 3) their limits, m/s^2: ``z_limit / |u_z|``, at most 1000 m/s^2
-    """
-    from ..kinematics import jacobian
-
-    n = len(xyz_m)
-    if n == 0:
-        return np.zeros((0, 3, 3)), np.zeros((0, 3))
-    J = jacobian(geom, xyz_m)
-    v = np.einsum("nij,nj->ni", J, qd)
-    acc = np.einsum("nij,nj->ni", J, qdd)
-    sp_ = np.linalg.norm(v, axis=1)
-    am = np.linalg.norm(acc, axis=1)
-    # the path direction: the velocity's, at rest the acceleration's, else z
-    u = np.where((sp_ > 2e-3)[:, None], v / np.maximum(sp_, 1e-300)[:, None],
-                 np.where((am > 0.05)[:, None], acc / np.maximum(am, 1e-300)[:, None], [0.0, 0.0, 1.0]))
-    e = np.where((np.abs(u[:, 2]) < 0.9)[:, None], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-    n1 = cross3(u, e)
-    n1 /= np.linalg.norm(n1, axis=1)[:, None]
-    n2 = cross3(u, n1)
-    a_seg = np.minimum(z_limit / np.maximum(np.abs(u[:, 2]), 1e-9), 1000.0)
-    M = np.einsum("nki,nij->nkj", np.stack([u, n1, n2], axis=1), J)
-    L = np.repeat(a_seg[:, None], 3, axis=1)
-    return M, L
-
-
-def nozzle_z_accel(geom, xyz_m: np.ndarray, qdd: np.ndarray, stride: int = 8) -> np.ndarray:
-    """The nozzle's z acceleration (m/s^2) from the carriages' ``qdd`` (N, 3) at the poses
-    ``xyz_m`` (N, 3), m: ``sum_i w_i q_i''`` with ``w`` the z row of ``J = dX/dq``, taken every
-    ``stride`` samples (it changes slowly with the pose; this only decides where the z bound
-    applies)."""
-    from ..kinematics import jacobian
-
-    n = len(xyz_m)
-    if n == 0:
-        return np.zeros(0)
-    w = np.repeat(jacobian(geom, xyz_m[::stride])[:, 2, :], stride, axis=0)[:n]
-    return np.einsum("ni,ni->n", w, qdd)
-
-
 def _chol_to_inv(factor) -> np.ndarray:
     """Inverse of the matrix a ``cho_factor`` result factorises (for rebuilding the Gram)."""
     n = factor[0].shape[0]
     return cho_solve(factor, np.eye(n), check_finite=False)
-
-
-class StreamingInverse:
-    """Reference samples in, compensated carriage commands out, in bounded memory.
-
-    Feed chunks of the reference (carriage positions, their derivatives and the nozzle poses) with
-    :meth:`push`; each call returns the commands of the samples that became final (a few hundred
-    milliseconds behind the input); :meth:`finish` returns the rest.  The printer is taken to be at
-    rest at the first sample before the stream starts (``cfg.pre_s`` of rest are added so the
-    command can pre-actuate) and after it ends.
-    """
-
-    def __init__(self, model: LpvModel, dt_s: float, cfg: InverseConfig = InverseConfig(),
-                 keep_padding: bool = False):
-        if cfg.method not in ("lpv", "lti-centre"):
-            raise ValueError(f"method {cfg.method!r} does not stream; use 'lpv' or 'lti-centre'")
-        self.model, self.dt, self.cfg = model, dt_s, cfg
-        self.keep_padding = keep_padding
-        self.basis = UniformBasis(cfg.degree, cfg.knot_samples, dt_s)
-        self.started = False
-        self.n_in = 0  # reference samples received (without the rest padding)
-        self.n_out = 0  # stream rows produced (with the padding)
-        self._returned = 0  # commands returned to the caller
-        self._pre_out = None
-        self._diff = None  # the reference's derivatives from its samples (cfg.derivatives == "samples")
-
-    def _start(self, q0, x0):
-        m, cfg, dt = self.basis.m, self.cfg, self.dt
-        self.q0 = q0.copy()
-        if cfg.derivatives == "samples":
-            self._diff = SplineDerivatives(q0, dt)
-        self.x_centre = np.array([0.0, 0.0, x0[2]])
-        mats0 = self.model.matrices(self.x_centre[None], check=False)
-        A0, _ = mech_arrays(mats0)
-        self.A0 = A0[0]
-        self.Bf = np.zeros((6, 3))
-        self.Bf[3:] = np.linalg.inv(mats0.M[0])
-        self._lti = (LtiStream(self.A0, self.Bf, dt), LtiStream(self.A0, self.Bf, dt))
-        self._M_prev = None
-        self.Bk0 = mats0.B_k[0].copy()
-        L = self.basis.support + mech_tail_samples(mats0, dt, cfg.kernel_tol)
-        k0 = mech_kernels(mats0, self.basis, L, cfg.substeps)[0]
-        win = _round_to(int(round(cfg.window_s / dt)), m)
-        adv = _round_to(int(round(cfg.advance_s / dt)), m)
-        split = modal_split(k0)  # towers alike: one solve per mode (modal_fbs), else coupled
-        self.mech = (ModalFbs(*split, self.basis, win, adv, cfg.reg, cfg.row_stride) if split is not None
-                     else FbsStream(k0, self.basis, win, adv, cfg.reg, cfg.row_stride))
-        dwin = _round_to(int(round(cfg.drive_window_s / dt)), m)
-        dadv = _round_to(int(round(cfg.drive_advance_s / dt)), m)
-        self.drive, self.dfilt = [], []
-        params = [(mats0.d0[i], mats0.d1[i], mats0.d2[i], mats0.lag_s[i], mats0.delay_s[i]) for i in range(3)]
-        self.shared_drive = all(p == params[0] for p in params)  # one solve for the three towers
-        for i in range(1 if self.shared_drive else 3):
-            d0, d1, d2, lag, dly = params[i]
-            Lb = self.basis.support + drive_tail_samples(d0, d2, lag, dt)
-            kb = drive_kernel(d0, d1, d2, lag, dly, self.basis, Lb)
-            self.drive.append(FbsStream(kb[None, :, None], self.basis, dwin, dadv, cfg.reg,
-                                        channels=3 if self.shared_drive else 1))
-        for i in range(3):
-            self.dfilt.append(DriveFilter(*params[i], dt))
-        self.zbound = cfg.bounds is not None and cfg.z_accel_bound is not None
-        if cfg.bounds is not None:
-            for d in self.drive:
-                d.set_bounds(*cfg.bounds)
-                if self.zbound:
-                    d.set_common_accel_bound(cfg.z_accel_bound, cfg.z_bound_share,
-                                             int(round(cfg.z_bound_reach_s / dt)),
-                                             partial(nozzle_components, self.model.geometry,
-                                                     z_limit=cfg.z_accel_bound))
-        # reference carriage velocity and acceleration of rows in qbuf_u, the nozzle's z acceleration
-        # and position
-        self.dbuf = np.zeros((0, 10))
-        # reference rows waiting for their delta (stage 1) and their eps (stage 2)
-        self.qbuf_u = np.zeros((0, 3))  # q_ref rows not yet through stage 1
-        self.pinbuf = np.zeros(0, bool)  # their hold flags
-        self.qbuf_c = np.zeros((0, 3))  # q_ref rows not yet through stage 2
-        self.started = True
-        n_pre = _round_to(int(round(cfg.pre_s / dt)), m)
-        self.n_pre = n_pre
-        n_post = int(round(cfg.post_s / dt))
-        self.n_post = n_post
-        z = np.zeros((n_pre, 3))
-        if self._diff is None:
-            self._pre_out = self._push(np.repeat(q0[None], n_pre, 0), z, z, np.repeat(x0[None], n_pre, 0))
-        else:
-            self._pre_out = self._push_differenced(np.repeat(q0[None], n_pre, 0), np.repeat(x0[None], n_pre, 0),
-                                                   np.zeros(n_pre, bool))
-
-    def _push(self, q, qd, qdd, X, pin=None) -> np.ndarray:
-        """Stage 1 on new rows (reference positions, velocities, accelerations, poses, hold flags)."""
-        cfg = self.cfg
-        self.pinbuf = np.concatenate([self.pinbuf, np.zeros(len(q), bool) if pin is None else pin])
-        zacc = nozzle_z_accel(self.model.geometry, X, qdd) if self.zbound else np.zeros(len(q))
-        self.dbuf = np.concatenate([self.dbuf, np.hstack([qd, qdd, zacc[:, None], X])])
-        Xm = X.copy()
-        if cfg.method == "lti-centre":
-            Xm[:, :2] = 0.0
-        mats = self.model.matrices(Xm, check=False)
-        g = inverse_dynamics_force(self.model, mats, q, qd, qdd, Xm if cfg.method == "lti-centre" else X, self.q0)
-        sc = self.Bk0 / mats.B_k  # the drive pushes with the pose's belt stiffness (see inverse.py)
-        h, dh = inertia_split(mats, qd, qdd, self.dt, self._M_prev)
-        self._M_prev = mats.M[-1].copy()
-        # H0[g] (inertia as the derivative of H0[h]), continuing the modal states across chunks
-        tgt = mech_target(self.A0, self.Bf, g * sc, h * sc, dh * sc, self.dt, lti=self._lti)
-        return self._stage2(q, self.mech.feed(tgt))
-
-    def _stage2(self, q, delta) -> np.ndarray:
-        self.qbuf_u = np.concatenate([self.qbuf_u, q])
-        n = len(delta)
-        qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
-        pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        dn, self.dbuf = self.dbuf[:n], self.dbuf[n:]
-        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=False))
-
-    def _drive_stage(self, qn, u, pn, dn, final: bool) -> list:
-        """Stage 2 on rows whose drive positions are known: returns the corrections of each tower."""
-        tgt = np.stack([u[:, i] - (self.dfilt[i](qn[:, i] - self.q0[i]) + self.q0[i]) for i in range(3)], 1)
-        if self.shared_drive:
-            e = self.drive[0].feed(tgt, pn, dn[:, :3], dn[:, 3:6], dn[:, 6], dn[:, 7:10])
-            if final:
-                e = np.concatenate([e, self.drive[0].finish()])
-            return [e[:, i] for i in range(3)]
-        eps = []
-        for i in range(3):
-            e = self.drive[i].feed(tgt[:, i:i + 1], pn, dn[:, i:i + 1], dn[:, 3 + i:4 + i], dn[:, 6])[:, 0]
-            if final:
-                e = np.concatenate([e, self.drive[i].finish()[:, 0]])
-            eps.append(e)
-        return eps
-
-    def _emit(self, qn, eps) -> np.ndarray:
-        self.qbuf_c = np.concatenate([self.qbuf_c, qn])
-        n = min(len(e) for e in eps)
-        self._eps_left = getattr(self, "_eps_left", [np.zeros(0)] * 3)
-        allv = [np.concatenate([self._eps_left[i], eps[i]]) for i in range(3)]
-        n = min(len(v) for v in allv)
-        out = self.qbuf_c[:n] + np.stack([v[:n] for v in allv], 1)
-        self.qbuf_c = self.qbuf_c[n:]
-        self._eps_left = [v[n:] for v in allv]
-        # drop the rest padding at the start (unless the caller emits it: then the whole timeline
-        # runs n_pre samples late, which leaves room to pre-actuate the first move)
-        skip = 0 if self.keep_padding else min(len(out), max(0, self.n_pre - self.n_out))
-        self.n_out += len(out)
-        return out[skip:]
-
-    def push(self, q_m, xyz_m, qd=None, qdd=None, hold=None) -> np.ndarray:
-        """Add reference samples (N, 3); returns finished commands (M, 3), M <= N overall.
-
-        ``hold`` (N,) marks samples where the command must equal the reference (the planned nozzle
-        stands still during an extruder-only move or a dwell, and a G-code file cannot move it then).
-        """
-        q_m = np.asarray(q_m, float)
-        xyz_m = np.asarray(xyz_m, float)
-        if len(q_m) == 0:
-            return np.zeros((0, 3))
-        if not self.started:
-            self._start(q_m[0], xyz_m[0])
-        if self._diff is None and (qd is None or qdd is None):  # derivatives="given"
-            raise ValueError("push needs the carriage velocities and accelerations with derivatives='given' "
-                             "(see ffcomp.kinematics.carriage_rates)")
-        self.n_in += len(q_m)
-        self._last = (q_m[-1].copy(), xyz_m[-1].copy())
-        pin = np.zeros(len(q_m), bool) if hold is None else np.asarray(hold, bool)
-        if self._diff is None:
-            out = self._push(q_m, np.asarray(qd, float), np.asarray(qdd, float), xyz_m, pin)
-        else:
-            out = self._push_differenced(q_m, xyz_m, pin)
-        if self._pre_out is not None:
-            out = np.concatenate([self._pre_out, out])
-            self._pre_out = None
-        self._returned += len(out)
-        return out
-
-    def _push_differenced(self, q, X, pin) -> np.ndarray:
-        """Stage 1 with the reference's derivatives taken from the samples (see :mod:`.differ`), a
-        fixed number of samples late: the firmware moves through the samples, velocity jumps at
-        corners included, which a planner's exact derivatives leave out (the command's bounds then
-        compare with the samples' own velocity and acceleration too)."""
-        qq, qd, qdd, XX, pp = self._diff.push(q, X, pin)
-        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
-
-    def _flush_differenced(self) -> np.ndarray:
-        qq, qd, qdd, XX, pp = self._diff.finish()
-        return self._push(qq, qd, qdd, XX, pp) if len(qq) else np.zeros((0, 3))
-
-    def finish(self) -> np.ndarray:
-        """Flush: rest padding after the end, the remaining windows; returns the last commands."""
-        if not self.started:
-            return np.zeros((0, 3))
-        q_last, x_last = self._last
-        n_post = int(round(self.cfg.post_s / self.dt))
-        z = np.zeros((n_post, 3))
-        if self._diff is None:
-            parts = [self._push(np.repeat(q_last[None], n_post, 0), z, z, np.repeat(x_last[None], n_post, 0))]
-        else:
-            parts = [self._push_differenced(np.repeat(q_last[None], n_post, 0), np.repeat(x_last[None], n_post, 0),
-                                            np.zeros(n_post, bool)), self._flush_differenced()]
-        delta = self.mech.finish()
-        parts.append(self._stage2_final(delta))
-        out = np.concatenate(parts)
-        if self.keep_padding:
-            return out[: max(0, self.n_pre + self.n_in + self.n_post - self._returned)]
-        return out[: max(0, self.n_in - self._returned)]
-
-    def _stage2_final(self, delta) -> np.ndarray:
-        n = len(delta)
-        qn, self.qbuf_u = self.qbuf_u[:n], self.qbuf_u[n:]
-        pn, self.pinbuf = self.pinbuf[:n], self.pinbuf[n:]
-        dn, self.dbuf = self.dbuf[:n], self.dbuf[n:]
-        return self._emit(qn, self._drive_stage(qn, qn + delta, pn, dn, final=True))
-
-
-def _active_set_qp(c0: np.ndarray, A, lo: np.ndarray, hi: np.ndarray, g_solve, nJ: int, C: int,
-                   max_iter: int = 60) -> np.ndarray | None:
-    """``argmin 1/2 c^T G c - g^T c`` subject to ``lo <= A c <= hi``, exactly, from the unconstrained
-    minimiser ``c0 = G^-1 g`` (channel-major, C blocks of nJ; ``G`` block-diagonal with one block
-    per channel, applied inverted by ``g_solve``).  Rows that ``c`` breaks join the working set at the
-    bound they break; while a row's multiplier has the wrong sign, the worst such row leaves it; the
-    equality-constrained minimiser ``c0 - G^-1 A_W^T lambda`` is solved again.  None when a working set
-    comes back (a cycle), the rounds run out, or the working set is degenerate: the caller falls back
-    to OSQP.
-    """
-    A = A.tocsr()
-    m = A.shape[0]
-    scale = np.where(np.isfinite(hi), np.abs(hi), 0.0) + np.where(np.isfinite(lo), np.abs(lo), 0.0)
-    tol = 1e-9 * np.maximum(scale, 1e-12)
-    side = np.zeros(m, np.int8)  # +1: held at hi, -1: held at lo
-    cols: dict = {}  # row -> G^-1 a_row (reused while the row stays in the working set)
-    seen: set = set()
-    c = c0
-    for _ in range(max_iter):
-        v = A @ c
-        new_hi, new_lo = (v > hi + tol) & (side == 0), (v < lo - tol) & (side == 0)
-        if not (new_hi.any() or new_lo.any()):
-            return c
-        side[new_hi], side[new_lo] = 1, -1
-        while True:  # the working set's minimiser; the worst wrong-signed row leaves, one at a time
-            w = np.nonzero(side)[0]
-            key = (w.tobytes(), side[w].tobytes())
-            if key in seen:
-                return None
-            seen.add(key)
-            if not w.size:
-                lam, Y = np.zeros(0), np.zeros((C * nJ, 0))
-                break
-            Aw = A[w].toarray()  # (k, C nJ)
-            for i, row in zip(w.tolist(), Aw):
-                if i not in cols:
-                    cols[i] = np.concatenate([g_solve(row[ch * nJ:(ch + 1) * nJ]) for ch in range(C)])
-            Y = np.stack([cols[i] for i in w.tolist()], axis=1)
-            b = np.where(side[w] > 0, hi[w], lo[w])
-            try:
-                lam = np.linalg.solve(Aw @ Y, Aw @ c0 - b)
-            except np.linalg.LinAlgError:
-                return None
-            score = side[w] * lam
-            if not (score < 0).any():
-                break
-            side[w[int(np.argmin(score / np.sqrt(np.maximum(np.einsum("ij,ji->i", Aw, Y), 1e-300))))]] = 0
-        c = c0 - Y @ lam
-        if not np.all(np.isfinite(c)):
-            return None
-    return None

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..compensate.inverse import InverseConfig
-from ..compensate.stream import StreamingInverse
+from ..compensate.stream_inverse import StreamingInverse
 from ..errors import GcodeError
 from ..gcode.margins import hold_margins
 from ..gcode.planner import GcodePlan
