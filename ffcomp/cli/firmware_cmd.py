@@ -15,7 +15,7 @@ def firmware_config(
     gcode: Annotated[Path, typer.Argument(help="A G-code file compensated by ffcomp.")],
     profile: ProfileOpt = None,
 ) -> None:
-    """Print the Klipper [printer] snippet (max_accel, max_z_accel, ...) the compensated file is timed for."""
+    """Print the printer.cfg snippet (max_accel, max_z_accel, ...) the compensated file is timed for."""
     from ..pipeline.header import klipper_snippet, read_firmware_needs
 
     if not gcode.is_file():
