@@ -1547,3 +1547,42 @@ def test_the_travel_to_the_start_ends_where_the_first_segment_starts(tmp_path, p
     words = lambda ln: dict((w[0], w[1:]) for w in ln.split(";")[0].split()[1:])  # noqa: E731
     assert (words(out[k])["X"], words(out[k])["Y"]) == (words(first)["X"], words(first)["Y"])
 
+
+#: a random file (``bench_random_drift.py --n 200 --seed 13``, file 4, default profile): the last z
+#: move ends in a pinned lift; the pin repair holds the settling on the plan's rest point for 80 ms
+#: and then moves 17 um and back
+SETTLING_TAIL = """G90
+M83
+G28
+G1 X3.554 Y0.872 Z1.075 F13589
+G1 Z1.638 F5834
+G1 X-25.067 Y11.771 F10197
+G1 X-8.705 Y-9.242 E0.0828 F7469
+G1 X-17.761 Y-15.863 E1.8448 F9571
+G1 X-0.002 Y0.033 E0.0135 F12700
+G1 Z4.932 E0.5984 F10591
+G1 Z7.336 F14525
+"""
+
+
+def test_a_settling_tail_that_rests_before_it_moves_is_written_with_its_rest(monkeypatch, tmp_path):
+    """The run after the last move stands on the plan's rest point for 80 ms and then moves: its
+    first segment (a hold of 80 samples) is written as a ``G4`` and not merged into the move after
+    it, which crept through the rest 18 um off the command (``holds.REST_MERGE_MAX_SAMPLES``)."""
+    from ffcomp.gcode import holds
+    from ffcomp.pipeline.compensate_flow import CompensateOptions, compensate_file
+    from ffcomp.profile import default_profile
+
+    src = tmp_path / "tail.gcode"
+    src.write_text(SETTLING_TAIL)
+    opts = CompensateOptions(predict=False, self_check_drift_ms=1e9, self_check_tol_um=1e9)
+    s = compensate_file(str(src), str(tmp_path / "o.gcode"), default_profile(), opts)
+    assert s.self_check_max_um < 8.0, s.self_check_max_um  # (4.3 um)
+    assert abs(s.self_check_drift_ms) < 0.2
+    waits = [float(ln.split("P")[1]) for ln in (tmp_path / "o.gcode").read_text().splitlines()
+             if ln.startswith("G4 P")]
+    assert max(waits) > 70.0  # the rest, as a dwell (80 ms)
+    monkeypatch.setattr(holds, "REST_MERGE_MAX_SAMPLES", None)
+    s_off = compensate_file(str(src), str(tmp_path / "off.gcode"), default_profile(), opts)
+    assert s_off.self_check_max_um > 14.0, s_off.self_check_max_um  # (18.0 um)
+

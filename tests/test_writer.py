@@ -480,6 +480,26 @@ def test_rest_holds_merge_into_their_neighbours():
     assert merged_rest_holds(i, j, srun, first, hold, np.zeros(8, bool), np.zeros(8, bool)) is None
 
 
+def test_a_long_first_hold_is_not_merged():
+    """A run's first segment that leaves rest as a hold merges forward only where it spans at most
+    ``REST_MERGE_MAX_SAMPLES`` samples: a long one is the command standing on the lead (a ``G4``)."""
+    from ffcomp.gcode.holds import REST_MERGE_MAX_SAMPLES, merged_rest_holds
+
+    i = np.arange(4)
+    j = i + 1
+    srun = np.array([0, 0, 1, 1])
+    first = np.r_[True, False, True, False]
+    hold = np.r_[True, False, True, False]
+    leaves = np.ones(4, bool)
+    span = np.array([1.0, 1.0, 80.0, 5.0])
+    assert REST_MERGE_MAX_SAMPLES is not None and REST_MERGE_MAX_SAMPLES < 80
+    i2, j2 = merged_rest_holds(i, j, srun, first, hold, leaves, np.zeros(4, bool), span=span)
+    np.testing.assert_array_equal(i2, [0, 2, 3])  # run 0's short hold merges; run 1's 80-sample one stays
+    np.testing.assert_array_equal(j2, [2, 3, 4])
+    i3, _ = merged_rest_holds(i, j, srun, first, hold, leaves, np.zeros(4, bool))  # no spans: both merge
+    np.testing.assert_array_equal(i3, [0, 2])
+
+
 def test_holds_that_extrude_merge_into_a_moving_segment():
     """Wet holds (they would be extruder-only lines, a stop of the firmware) merge into the moving
     segment after them, at a run's end into the one before; dry holds (G4) stay."""

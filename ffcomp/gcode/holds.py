@@ -129,9 +129,18 @@ def settle_holds(Pr: np.ndarray, i: np.ndarray, j: np.ndarray, first_seg: np.nda
     return Pr, d, dist, (dist < 1e-3) if force is None else (dist < 1e-3) | force
 
 
+#: :func:`merged_rest_holds` merges a run's first segment into the next only where it spans at most
+#: this many samples (None: any).  The settling's rest after a file's last move, pinned to the plan's
+#: rest point for 80 ms by the pin repair and then moving 17 um and back (the repair's last
+#: correction of the ringing), was merged into one 87 ms chord that crept through the rest: 18 um
+#: off the command (a random file on the default profile)
+REST_MERGE_MAX_SAMPLES: float | None = 4.0
+
+
 def merged_rest_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, first_seg: np.ndarray, hold: np.ndarray,
                       leaves: np.ndarray, rests: np.ndarray,
-                      near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
+                      near: np.ndarray | None = None,
+                      span: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Segments ``i -> j`` (point indices) with the holds the settling made at a run's ends merged
     into their neighbour, or None where there are none.
 
@@ -153,11 +162,16 @@ def merged_rest_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, first_seg:
     micrometre or two off the lead is the same case: the command settles a stop short of the plan's
     rest point, where the run ends; written, the firmware would leave rest for that micrometre in
     the part of a sample the plan gives it (0.7 ms late after a z-hop on other_delta).
+    ``span`` (per segment, samples): a first segment longer than :data:`REST_MERGE_MAX_SAMPLES` is
+    not merged: there the command stands on the lead for a while (a ``G4`` is exact) and then
+    moves on, and the merged segment would creep from the lead to that move's first point.
     """
     nxt_same = np.r_[srun[1:] == srun[:-1], False]
     prv_same = np.r_[False, srun[1:] == srun[:-1]]
     near = hold if near is None else near | hold
     first = first_seg & near & leaves & nxt_same & ~np.r_[hold[1:], False]
+    if span is not None and REST_MERGE_MAX_SAMPLES is not None:
+        first &= span <= REST_MERGE_MAX_SAMPLES
     end = hold & ~nxt_same & rests & prv_same & ~np.r_[False, hold[:-1]] & ~first
     end[1:] &= ~first[:-1]
     if not (first.any() or end.any()):

@@ -602,7 +602,7 @@ class GcodeWriter:
         went_a, rest_go_a = np.asarray(went, bool), np.asarray(rest_go, bool)
         merged = merged_rest_holds(i, j, srun, first_seg, hold, (went_a | rest_go_a)[srun],
                                    np.array([e is not None for e in run_ends], bool)[srun],
-                                   near=dist < REST_POINT_NEAR_MM)
+                                   near=dist < REST_POINT_NEAR_MM, span=K[j] - K[i])
         if merged is not None:
             i, j = merged
             dt = (K[j] - K[i]) * self.dt
