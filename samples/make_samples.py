@@ -786,6 +786,16 @@ PRUSA_JOBS = {
             " --bottom-solid-layers 3 --fill-density 15% --fill-pattern rectilinear --wipe"
         ),
     ),
+    # the cube with firmware retraction (G10/G11; a profile without [firmware_retraction] plans
+    # them as stops, every stream after one starts with a pre-roll from rest)
+    "cube_fwr_prusa": (
+        "cube20",
+        _opts(
+            "--layer-height 0.3 --first-layer-height 0.3 --perimeters 2 --top-solid-layers 3"
+            " --bottom-solid-layers 3 --fill-density 15% --fill-pattern rectilinear"
+            " --use-firmware-retraction"
+        ),
+    ),
     "ringing_tower_prusa": (
         "ringing_tower_6mm",
         _opts("--layer-height 0.3 --first-layer-height 0.3 --perimeters 2 --fill-density 0%"),

@@ -500,6 +500,35 @@ def test_a_long_first_hold_is_not_merged():
     np.testing.assert_array_equal(i3, [0, 2])
 
 
+def test_a_move_that_cannot_leave_rest_in_its_time_takes_the_hold_before_it():
+    """``holds.merged_start_holds``: a dry move after dry holds of its run that needs more than
+    ``START_HOLD_SHORT`` times its time from rest at its acceleration limit takes over holds before
+    it (the last first) until it can; one that can, or a wet one, keeps its holds."""
+    from ffcomp.gcode.chain_plan import ChainLimits
+    from ffcomp.gcode.holds import merged_start_holds
+    from ffcomp.profile import load_profile
+
+    lim = ChainLimits(load_profile("samples/profiles/other_delta.toml"), 1e5, 5.0)  # max_z_accel 3,000
+    # points along z: a rest (0 -> 1 -> 2 -> 3 hold within 0.3 um), then 3 um in 1 ms (needs 1.41 ms
+    # from rest at 3,000 mm/s^2), then on
+    z = np.array([0.0, 0.0001, 0.0002, 0.0003, 0.0033, 0.0100])
+    P = np.column_stack([np.zeros(6), np.zeros(6), 5.0 + z])
+    i, j = np.arange(5), np.arange(1, 6)
+    hold = np.array([True, True, True, False, False])
+    srun = np.zeros(5, np.int64)
+    D = np.array([5e-3, 5e-3, 1e-3, 1e-3, 1e-3])
+    dry = np.ones(5, bool)
+    i2, j2 = merged_start_holds(lim, i, j, P, srun, hold, dry, D)
+    np.testing.assert_array_equal(i2, [0, 1, 2, 4])  # the 1 ms hold (2 -> 3) went into the move
+    np.testing.assert_array_equal(j2, [1, 2, 4, 5])
+    wet = dry.copy()
+    wet[3] = False
+    assert merged_start_holds(lim, i, j, P, srun, hold, wet, D) is None
+    slow = D.copy()
+    slow[3] = 2e-3  # 3 um in 2 ms: it can
+    assert merged_start_holds(lim, i, j, P, srun, hold, dry, slow) is None
+
+
 def test_holds_that_extrude_merge_into_a_moving_segment():
     """Wet holds (they would be extruder-only lines, a stop of the firmware) merge into the moving
     segment after them, at a run's end into the one before; dry holds (G4) stay."""

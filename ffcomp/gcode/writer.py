@@ -45,7 +45,14 @@ from .breakpoints import breakpoints_runs
 from .chain_plan import ChainLimits, corner_v2, segment_limits
 from .extrusion import EDGE_SHARE, by_length, extruder_capped, flow_groups, place_ratio_steps  # noqa: F401 (EDGE_SHARE: re-exported)
 from .feed_solve import TimingState, extrude_only_feed, extrude_only_time, solve_feeds
-from .holds import merged_ramp_holds, merged_rest_holds, merged_wet_holds, settle_holds, unrunnable_rests
+from .holds import (
+    merged_ramp_holds,
+    merged_rest_holds,
+    merged_start_holds,
+    merged_wet_holds,
+    settle_holds,
+    unrunnable_rests,
+)
 from .knot_fit import fit_knots
 from .moves import EXTRUDE, FIRMWARE, MOVE, PlannedMove
 from .passthrough import passthrough_lines
@@ -619,6 +626,14 @@ class GcodeWriter:
                           for r in (runs[q] for q in run_ids)], bool)
         if quiet.any():
             merged = merged_ramp_holds(i, j, srun, hold, quiet[srun])
+            if merged is not None:
+                i, j = merged
+                dt = (K[j] - K[i]) * self.dt
+                srun, first_seg, Pr, d, dist, hold = settled(i, j)
+        if self.chain is not None:
+            # a move that leaves rest after holds the firmware cannot start in its time takes the last
+            # of them over (holds.merged_start_holds)
+            merged = merged_start_holds(self.chain, i, j, Pr, srun, hold, Ef[j] == Ef[i], dt)
             if merged is not None:
                 i, j = merged
                 dt = (K[j] - K[i]) * self.dt
