@@ -85,9 +85,13 @@ def test_printed_samples_weigh_more_in_the_repair(model):
 def test_the_print_weight_keeps_the_nozzle_out_of_the_line_before_a_lift(tmp_path):
     """A 20 mm square printed in three layers on other_delta, each layer change a lift straight after
     the printed line (no retraction) and pinned to the plan: unweighted, the repair reshaped the
-    line's end to shorten the lift's lag, and on the held-out truth plant the nozzle dipped 23-29 um
-    below the line in the last 15 ms before each lift.  With the printed samples counting twice
-    (the default) it stays within 11 um there, and the printed samples' z error falls overall."""
+    line's end to shorten the lift's lag, and on the held-out truth plant the nozzle dipped below the
+    line before each lift.  With the printed samples counting twice (the default) it stays within a
+    few um there, and the printed samples' z error falls overall.  (The window ends 3 ms before the
+    line does: there the nozzle answers the lift itself, 40-60 um down with either weight, the drive's
+    right-half-plane zero.  Until the thirty-fifth round ``simulate --compare`` put the reference
+    2.3 ms early, on the output's command rather than its nozzle, and this window read -29 um
+    unweighted and -10.7 um weighted over its last 15 ms.)"""
     import dataclasses
     from pathlib import Path
 
@@ -114,12 +118,12 @@ def test_the_print_weight_keeps_the_nozzle_out_of_the_line_before_a_lift(tmp_pat
         printing = np.r_[np.diff(e) > 1e-9, False]
         ends = np.nonzero(printing[:-1] & ~printing[1:])[0]
         assert len(ends) == 3
-        return (min(float(dz[k - 15:k + 1].min()) for k in ends), float(np.sqrt(np.mean(dz[printing] ** 2))))
+        return (min(float(dz[k - 15:k - 2].min()) for k in ends), float(np.sqrt(np.mean(dz[printing] ** 2))))
 
     dip1, rms1 = dips(1.0)
     dip2, rms2 = dips(RepairConfig().print_weight)
-    assert dip1 < -20e-6  # the case: -29 um
-    assert dip2 > -15e-6 and rms2 < 0.85 * rms1  # -10.7 um; 3.73 -> 2.85 um RMS
+    assert dip1 < -15e-6  # the case: -21 um
+    assert dip2 > -8e-6 and rms2 < 0.85 * rms1  # -2.7 um; 4.99 -> 3.99 um RMS
 
 
 def test_stream_keeps_chunks_and_order(model):
