@@ -389,3 +389,17 @@ def test_round_trip_any_mix_of_lines(lines):
     recs = parse_text(text)
     assert "".join(r.raw for r in recs) == text
     assert [r.lineno for r in recs] == list(range(1, len(lines) + 1))
+
+
+def test_a_last_command_without_a_line_end_is_flagged_as_a_possible_truncation():
+    """A file cut short (an upload or a copy) ends in the middle of a line: its last command runs as
+    it reads (``G1 X1.4`` of ``G1 X1.465 Y-5.1 E1.63``), and the parser says so once; a last comment
+    or blank line without a line end is no sign of it."""
+    p = GcodeParser(iter(["G28\n", "G1 X10 Y10 Z1 F3000\n", "G1 X1.4"]), path="cut.gcode")
+    recs = list(p)
+    assert len(recs) == 3 and isinstance(recs[-1].op, LinearMove)
+    assert p.warnings == 1 and "cut.gcode:3: the last line has no line end" in p.warning_messages[0]
+    for last in ("; end of print", "   ", "G1 X10 Y10 Z1 F3000\n"):
+        q = GcodeParser(iter(["G28\n", "G1 X10 Y10 Z1 F3000\n", last]), path="ok.gcode")
+        list(q)
+        assert q.warnings == 0, last

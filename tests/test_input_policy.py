@@ -146,6 +146,7 @@ def test_stop_lines_run_where_the_compensated_command_rests(tmp_path, prof, cmd)
     for ln in before:
         assert np.linalg.norm(_xyz(ln) - [20.0, 0.0, 0.3]) < 0.02, (ln, lines[i - 4:i + 1])
     assert s.commands_stopped + s.commands_unknown == (0 if cmd == "M400" else 1) and s.self_check_max_um < 50
+    assert s.commands_synced == (1 if cmd == "M400" else 0)  # (said in the summary: the stream restarts there)
     if cmd == "MY_PURGE_MACRO":
         assert s.commands_unknown == 1 and s.warnings == len(s.notes)
         assert sum("MY_PURGE_MACRO" in n for n in s.notes) == 1
@@ -390,3 +391,17 @@ def test_a_refused_slow_line_changes_no_state():
     recs = parse_text("G1 X0 Y0 Z5 F6000\nG1 X50 F0.001\nG1 X10\n", lenient=True)
     assert recs[1].op is None and recs[1].error and recs[2].op.speed_mm_s == 100.0
     assert recs[2].op.start[0] == 0.0
+
+
+def test_limit_commands_the_firmware_ignores_are_said(tmp_path):
+    """Marlin-flavoured ``M204 P`` lines (PrusaSlicer's per-feature acceleration) are invalid to
+    Klipper, which ignores them, as the plan does; the summary says so, once, with how many."""
+    body = "G28\nG90\nM83\nG1 X0 Y0 Z0.3 F6000\n{m204}\nG1 X20 Y0 E1 F3000\nG1 X20 Y20 E1\n{m204}\nG1 X0 Y20 E1\n"
+    src, out = tmp_path / "m204.gcode", tmp_path / "o.gcode"
+    src.write_text(body.format(m204="M204 P2000"))
+    s = compensate_file(str(src), str(out), default_profile(), FAST)
+    notes = [n for n in s.notes if "Invalid M204" in n]
+    assert len(notes) == 1 and notes[0].startswith("2 limit command(s) that klipper ignores")
+    src.write_text(body.format(m204="M204 P2000 T3000"))  # valid to Klipper: min(P, T)
+    s = compensate_file(str(src), str(out), default_profile(), FAST)
+    assert not [n for n in s.notes if "ignores" in n]

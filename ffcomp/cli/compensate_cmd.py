@@ -251,6 +251,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         t.add_row("other lines: passed / baked in / stops / unknown / skipped",
                   f"{d['commands_passed']} / {d['commands_baked']} / {d['commands_stopped']} / "
                   f"{d['commands_unknown']} / {d['lines_skipped']}")
+    if d.get("commands_synced"):
+        t.add_row("M400 / M18 / M84 (the compensation settles and starts again at each)", f"{d['commands_synced']}")
     if d.get("firmware_retractions"):
         t.add_row("G10/G11 timed with [firmware_retraction]", f"{d['firmware_retractions']}")
     if d.get("input_shaper"):

@@ -207,7 +207,7 @@ class GcodeParser:
         if unknown_policy not in UNKNOWN_POLICIES:
             raise ValueError(f"unknown_policy must be one of {', '.join(UNKNOWN_POLICIES)}, got {unknown_policy!r}")
         self.unknown_policy = unknown_policy
-        self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0, "firmware_retraction": 0}
+        self.counts = {PASS: 0, STATE: 0, STOP: 0, UNKNOWN: 0, "skipped": 0, "firmware_retraction": 0, "sync": 0}
         self.first_motion_line: int | None = None
         self.first_home_line: int | None = None
         self.first_motion: LinearMove | ArcMove | None = None
@@ -269,6 +269,7 @@ class GcodeParser:
         lineno = 0
         match = RUN_LINE.match if runs else None
         run: list = []  # (line number, raw line, match) of the pending run
+        raw = ""
         for raw in _without_bom(self._lines):
             lineno += 1
             self.lines_read = lineno
@@ -327,6 +328,9 @@ class GcodeParser:
             yield GcodeLine(lineno, raw, cmd, op)
         if run:
             yield from self._run_records(run)
+        if raw and not raw.endswith("\n") and raw.split(";")[0].strip():
+            self._warn(lineno, "the last line has no line end: the file may be truncated (a copy or an upload "
+                       "cut short); its command runs as it reads", raw)
 
     def _run_records(self, run: list) -> Iterator:
         """The pending run (emptied) as one :class:`~ffcomp.gcode.move_runs.MoveRun`, or line by line
@@ -731,9 +735,11 @@ class GcodeParser:
         return ModeChange("absolute_extrude", False)
 
     def _m84(self, params):
+        self.counts["sync"] += 1
         return Sync("M84")
 
     def _m400(self, params):
+        self.counts["sync"] += 1
         return Sync("M400")
 
     def _m220(self, params):

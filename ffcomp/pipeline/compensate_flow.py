@@ -152,6 +152,9 @@ def _compensate_file(src: str, out_path: str | None, profile, opts: CompensateOp
         accel = bd.accel
         summ.warnings += bd.parser_warnings
         _count_commands(summ, bd.counts)
+        if bd.counts.get("ignored"):
+            summ.warnings += 1
+            summ.notes.append(_ignored_note(bd.counts["ignored"], profile.limits.planner))
         if start_warning:
             summ.warnings += 1
             summ.notes.append(start_warning)
@@ -464,7 +467,8 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     parser = plan.parser
     return BodyResult(stats=writer.stats, accel=accel, firmware=plan.firmware,
                       parser_warnings=parser.warnings if hasattr(parser, "warnings") else 0,
-                      counts=dict(parser.counts), warning_messages=list(parser.warning_messages[:20]),
+                      counts=dict(parser.counts, ignored=plan.planner.ignored_commands),
+                      warning_messages=list(parser.warning_messages[:20]),
                       pred_sq=[float(x) for x in pred.sq] if pred is not None else [0.0, 0.0],
                       pred_n=pred.n if pred is not None else 0,
                       pred_mx=[float(x) for x in pred.mx] if pred is not None else [0.0, 0.0],
@@ -502,6 +506,14 @@ def _check_flavour(src: str, profile, summ: CompensationSummary) -> None:
         summ.notes.append(msg)
 
 
+def _ignored_note(n: int, planner: str) -> str:
+    """The warning for limit commands the profile's firmware ignores (planned as it runs them)."""
+    which = ("M204 with P but no T or S (Marlin's per-feature acceleration; Klipper answers 'Invalid M204 "
+             "command')" if planner == "klipper" else "SET_VELOCITY_LIMIT (a Klipper command)")
+    return (f"{n} limit command(s) that {planner} ignores: {which}. The plan and the output run as the "
+            "firmware does, without them: the file's own accelerations there do not apply")
+
+
 def _count_commands(summ: CompensationSummary, counts: dict) -> None:
     """The parser's per-class command counts into the summary (see :mod:`ffcomp.gcode.commands`)."""
     summ.commands_passed = counts.get("pass", 0)
@@ -509,6 +521,7 @@ def _count_commands(summ: CompensationSummary, counts: dict) -> None:
     summ.commands_stopped = counts.get("stop", 0)
     summ.commands_unknown = counts.get("unknown", 0)
     summ.lines_skipped = counts.get("skipped", 0)
+    summ.commands_synced = counts.get("sync", 0)
     summ.firmware_retractions = counts.get("firmware_retraction", 0)
 
 

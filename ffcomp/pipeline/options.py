@@ -156,6 +156,9 @@ class CompensationSummary:
     commands_stopped: int = 0
     commands_unknown: int = 0
     lines_skipped: int = 0
+    #: M400 and M18/M84 lines: the firmware drains its queue there (a stop of the toolhead), so the
+    #: compensation settles and starts again at each (the inverse's settle and pre-roll, 0.35 s by default)
+    commands_synced: int = 0
     #: G10/G11 timed as the extruder moves Klipper's firmware_retraction makes of them (the profile's
     #: [firmware_retraction]); without that section they are stops (among commands_stopped)
     firmware_retractions: int = 0
