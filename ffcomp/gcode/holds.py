@@ -6,7 +6,9 @@
   time (the settling after a pinned z move), within the point tolerance;
 * :func:`merged_rest_holds`: the settled holds where a run leaves or comes to rest on the plan's
   time, merged into the segment next to them;
-* :func:`merged_wet_holds`: holds that extrude, merged into the moving segment after them.
+* :func:`merged_wet_holds`: holds that extrude, merged into the moving segment after them;
+* :func:`merged_start_holds`: the last holds before a move that cannot leave rest in its time,
+  merged into that move.
 
 Pure numeric kernels on the writer's points (no I/O), called by :class:`~ffcomp.gcode.writer.GcodeWriter`.
 """
@@ -17,7 +19,8 @@ import numpy as np
 
 from .chain_plan import ChainLimits, segment_limits
 
-__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds", "merged_wet_holds", "merged_ramp_holds"]
+__all__ = ["settle_holds", "unrunnable_rests", "merged_rest_holds", "merged_wet_holds", "merged_ramp_holds",
+           "merged_start_holds"]
 
 
 def unrunnable_rests(lim: ChainLimits, P0: np.ndarray, P1: np.ndarray, dist: np.ndarray, D: np.ndarray,
@@ -267,6 +270,14 @@ def merged_ramp_holds(i: np.ndarray, j: np.ndarray, srun: np.ndarray, hold: np.n
 #: :func:`merged_start_holds` is on (a switch for the tests)
 START_HOLD_MERGE = True
 
+#: :func:`merged_start_holds` merges at most this many holds into a move that starts from rest
+START_HOLD_MAX_MERGES = 3
+
+#: :func:`merged_start_holds` merges only where the move needs this many times its time from rest.
+#: (A move a few per cent short, the pre-roll after a homing, ran later merged: the longer segment's
+#: low feed capped the junction into the fast one after it, +0.030 -> +0.103 ms on arcs.gcode)
+START_HOLD_SHORT = 1.2
+
 
 def merged_start_holds(lim: ChainLimits, i: np.ndarray, j: np.ndarray, P: np.ndarray, srun: np.ndarray,
                        hold: np.ndarray, dry: np.ndarray, D: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -280,9 +291,9 @@ def merged_start_holds(lim: ChainLimits, i: np.ndarray, j: np.ndarray, P: np.nda
     ``sqrt(2 d / a)`` at least at its acceleration limit ``a`` (Klipper's delta cap
     ``max_z_accel * d/|dz|`` on a z move): 3 um in 1 ms at 3,000 mm/s^2 took 1.41 ms, 0.43 ms late
     after a ``G10`` on other_delta.  Where it needs more than :data:`START_HOLD_SHORT` times its
-    time, the last hold (dry, in the same run) is not a point: the
-    move spans its time as well (the nozzle stood within a micrometre of its start), up to
-    :data:`START_HOLD_MAX_MERGES` holds back while the move still cannot start in its time.
+    time, the last hold (dry, in the same run) is not a point: the move spans its time as well (the
+    nozzle stood within a micrometre of its start), up to :data:`START_HOLD_MAX_MERGES` holds back
+    while the move still cannot start in its time.
     ``srun``, ``hold``, ``dry`` (no extrusion), ``D`` (durations, s): per segment.
     """
     if not START_HOLD_MERGE:
@@ -312,12 +323,3 @@ def merged_start_holds(lim: ChainLimits, i: np.ndarray, j: np.ndarray, P: np.nda
                 break
         i[m] = i[first]
     return i[keep], j[keep]
-
-
-#: :func:`merged_start_holds` merges at most this many holds into a move that starts from rest
-START_HOLD_MAX_MERGES = 3
-
-#: :func:`merged_start_holds` merges only where the move needs this many times its time from rest.
-#: (A move a few per cent short, the pre-roll after a homing, ran later merged: the longer segment's
-#: low feed capped the junction into the fast one after it, +0.030 -> +0.103 ms on arcs.gcode)
-START_HOLD_SHORT = 1.2
