@@ -106,7 +106,7 @@ def test_table_shows_output_firmware_clamps_and_warnings(tmp_path, capsys):
     flat = re.sub(r"\s+", " ", text.replace("│", " "))
     assert f"output{out}" in re.sub(r"[\s│]", "", text)  # a long path wraps inside its cell
     assert "firmware assumed (profile) klipper (file sliced for Marlin)" in flat
-    assert re.search(r"samples clamped to the workspace \d+", flat)
+    assert re.search(r"samples clamped to the workspace \(a \d+ correction past the firmware.s limits", flat)
     assert re.search(r"warnings [1-9]\d* \(listed below\)", flat)
     assert "warning:" in err and "sliced for Marlin" in err
 

@@ -225,7 +225,8 @@ def _report(d: dict, json: bool, to_stderr: bool = False) -> None:
         "retime_after_ms": ("  after (largest on the absolute clock)", "{:.3f} ms"),
         "retime_passes": ("  passes", "{}"),
         "header_accel_mm_s2": ("firmware ACCEL the output sets", "{:.0f} mm/s^2"),
-        "clamped": ("samples clamped to the workspace", "{}"),
+        "clamped": ("samples clamped to the workspace (a correction past the firmware's limits: "
+                    "z_max after a homing, the rim)", "{}"),
         "pinned_samples": ("samples held on the plan (retractions, dwells, z-hops)", "{}"),
         "pin_windows": ("windows re-solved around them", "{}"),
         "cap_windows": ("stretches brought within the delta cap", "{}"),
