@@ -401,7 +401,7 @@ def test_limit_commands_the_firmware_ignores_are_said(tmp_path):
     src.write_text(body.format(m204="M204 P2000"))
     s = compensate_file(str(src), str(out), default_profile(), FAST)
     notes = [n for n in s.notes if "Invalid M204" in n]
-    assert len(notes) == 1 and notes[0].startswith("2 limit command(s) that klipper ignores")
+    assert len(notes) == 1 and notes[0].startswith("2 limit command(s) that klipper ignores (M204 without S or T: 2;")
     src.write_text(body.format(m204="M204 P2000 T3000"))  # valid to Klipper: min(P, T)
     s = compensate_file(str(src), str(out), default_profile(), FAST)
     assert not [n for n in s.notes if "ignores" in n]

@@ -260,7 +260,8 @@ class KlipperPlanner:
         self.print_time = 0.0
         self.out: list[PlannedMove] = []
         self.n_out = 0
-        self.ignored_commands = 0
+        #: limit commands Klipper ignores, by what they are (see :attr:`ignored_commands`)
+        self.ignored: dict[str, int] = {}
         self.quiet_z_period_s = quiet_z_period_s
         self.quiet_moves = 0  # z moves next to a hold planned with quiet ramps (quiet_z_period_s)
         self.quiet_added_s = 0.0  # the time their ramps add, rest to rest, s
@@ -277,10 +278,15 @@ class KlipperPlanner:
 
     def limits(self, op, line) -> None:
         h = self._limits.get(op.command)
-        if h is None:
-            self.ignored_commands += 1
+        if h is None:  # (M201, M203, M205: not Klipper commands)
+            self.ignored[op.command] = self.ignored.get(op.command, 0) + 1
             return
         h(op)
+
+    @property
+    def ignored_commands(self) -> int:
+        """How many limit commands Klipper ignored (:attr:`ignored` says which)."""
+        return sum(self.ignored.values())
 
     def _set_velocity_limit(self, op) -> None:
         mcr = op.minimum_cruise_ratio
@@ -302,7 +308,8 @@ class KlipperPlanner:
         if accel is None:
             p, t = op.print_accel_mm_s2, op.travel_accel_mm_s2
             if p is None or t is None:
-                self.ignored_commands += 1  # Klipper: 'Invalid M204 command'
+                key = "M204 without S or T"  # Klipper: 'Invalid M204 command'
+                self.ignored[key] = self.ignored.get(key, 0) + 1
                 return
             accel = min(p, t)
         self.max_accel = accel

@@ -120,16 +120,22 @@ class MarlinPlanner:
         self.print_time = 0.0
         self.out: list[PlannedMove] = []
         self.n_out = 0
-        self.ignored_commands = 0
+        #: limit commands Marlin ignores, by name (see :attr:`ignored_commands`)
+        self.ignored: dict[str, int] = {}
         self._limits = {"M201": self._m201, "M203": self._m203, "M204": self._m204, "M205": self._m205}
 
     # ------------------------------------------------------------------ limits
     def limits(self, op, line) -> None:
         h = self._limits.get(op.command)
-        if h is None:
-            self.ignored_commands += 1  # SET_VELOCITY_LIMIT is unknown to Marlin
+        if h is None:  # SET_VELOCITY_LIMIT is unknown to Marlin
+            self.ignored[op.command] = self.ignored.get(op.command, 0) + 1
             return
         h(op)
+
+    @property
+    def ignored_commands(self) -> int:
+        """How many limit commands Marlin ignored (:attr:`ignored` says which)."""
+        return sum(self.ignored.values())
 
     def _m201(self, op) -> None:
         for i, v in enumerate(op.max_accel_axes_mm_s2 or ()):

@@ -467,7 +467,7 @@ def write_body(src: str, profile, opts: CompensateOptions, start, summ: Compensa
     parser = plan.parser
     return BodyResult(stats=writer.stats, accel=accel, firmware=plan.firmware,
                       parser_warnings=parser.warnings if hasattr(parser, "warnings") else 0,
-                      counts=dict(parser.counts, ignored=plan.planner.ignored_commands),
+                      counts=dict(parser.counts, ignored=dict(plan.planner.ignored)),
                       warning_messages=list(parser.warning_messages[:20]),
                       pred_sq=[float(x) for x in pred.sq] if pred is not None else [0.0, 0.0],
                       pred_n=pred.n if pred is not None else 0,
@@ -506,12 +506,14 @@ def _check_flavour(src: str, profile, summ: CompensationSummary) -> None:
         summ.notes.append(msg)
 
 
-def _ignored_note(n: int, planner: str) -> str:
-    """The warning for limit commands the profile's firmware ignores (planned as it runs them)."""
-    which = ("M204 with P but no T or S (Marlin's per-feature acceleration; Klipper answers 'Invalid M204 "
-             "command')" if planner == "klipper" else "SET_VELOCITY_LIMIT (a Klipper command)")
-    return (f"{n} limit command(s) that {planner} ignores: {which}. The plan and the output run as the "
-            "firmware does, without them: the file's own accelerations there do not apply")
+def _ignored_note(ignored: dict, planner: str) -> str:
+    """The warning for limit commands the profile's firmware ignores (planned as it runs them):
+    ``ignored`` maps what they are to how many (the planner's ``ignored``)."""
+    which = ", ".join(f"{k}: {v}" for k, v in sorted(ignored.items()))
+    why = ("; an M204 without S or T is a Marlin per-feature acceleration, to which Klipper answers 'Invalid M204 "
+           "command'" if "M204 without S or T" in ignored else "")
+    return (f"{sum(ignored.values())} limit command(s) that {planner} ignores ({which}{why}). The plan and the "
+            "output run as the firmware does, without them: the file's own limits there do not apply")
 
 
 def _count_commands(summ: CompensationSummary, counts: dict) -> None:
